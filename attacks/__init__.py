@@ -1,0 +1,1 @@
+"""Attack plugins (perturb scans within a budget). Installed as ``icpbench.attacks``."""

@@ -1,0 +1,1 @@
+"""Datasets: procedural objects, mesh folders, the simulated lidar town, KITTI and Boreas."""

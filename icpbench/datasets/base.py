@@ -1,0 +1,66 @@
+"""Dataset base class: an indexable, deterministic sequence of :class:`~icpbench.types.Sample`."""
+
+from __future__ import annotations
+
+import os
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+from icpbench.errors import InputError
+from icpbench.types import Sample
+
+Split = Literal["train", "test", "all"]
+
+
+def default_cache_dir() -> Path:
+    """Where generated datasets are cached: ``$ICPBENCH_CACHE`` or ``~/.cache/icpbench``."""
+    return Path(os.environ.get("ICPBENCH_CACHE", Path.home() / ".cache" / "icpbench"))
+
+
+class Dataset(ABC):
+    """A deterministic collection of samples.
+
+    Class attributes:
+        name: registry key.
+        description: one line for ``icpbench list``.
+        icp_preset: the ICP preset matching the data's scale (``"objects"`` or ``"lidar"``).
+        default_budgets: budgets (metres or normalised units) used when none are given.
+
+    ``dataset[i]`` returns the i-th sample of the chosen split; the same constructor arguments
+    always give the same samples.
+    """
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    icp_preset: ClassVar[str] = "lidar"
+    default_budgets: ClassVar[tuple[float, ...]] = (1.0, 2.0, 3.0, 4.0, 5.0)
+
+    def __init__(self, *, seed: int = 0, split: Split = "test", **params: Any) -> None:
+        if split not in ("train", "test", "all"):
+            raise InputError(f"split must be one of train, test, all; got {split!r}")
+        self.seed = int(seed)
+        self.split = split
+        self.params = params
+
+    @abstractmethod
+    def __len__(self) -> int:
+        """Number of samples in the split."""
+
+    @abstractmethod
+    def __getitem__(self, i: int) -> Sample:
+        """The i-th sample (0 <= i < len)."""
+
+    def __iter__(self) -> Iterator[Sample]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def take(self, k: int | None) -> list[Sample]:
+        """The first ``k`` samples of the split (all when ``k`` is None)."""
+        n = len(self) if k is None else min(int(k), len(self))
+        return [self[i] for i in range(n)]
+
+    def describe(self) -> dict[str, Any]:
+        """Parameters recorded in manifests."""
+        return {"name": self.name, "seed": self.seed, "split": self.split, **self.params}

@@ -1,0 +1,1 @@
+"""ICP target plugins (the ICP variants under attack). Installed as ``icpbench.targets``."""
