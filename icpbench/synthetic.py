@@ -96,16 +96,21 @@ def random_transform(rng: np.random.Generator, trans_m: float, rot_deg: float,
 
 
 def scene_sample(n_scan: int = 2_000, n_map: int = 20_000, seed: int = 0, noise_m: float = 0.0,
-                 trans_m: float = 0.3, rot_deg: float = 5.0, scene_seed: int = 0) -> Sample:
+                 trans_m: float = 0.3, rot_deg: float = 5.0, scene_seed: int = 0,
+                 scan_from_map: bool = False) -> Sample:
     """A registration problem on the synthetic scene.
 
-    The scan is an independent set of surface samples of the same scene, expressed in a sensor
-    frame offset by a random transform: ``scan = inv(T_gt) @ points`` so ``T_gt`` maps scan->map.
-    ``T_init`` is the identity (as in the paper).
+    The scan is an independent set of surface samples of the same scene (or, with
+    ``scan_from_map``, a subset of the map points, so exact alignment exists), expressed in a
+    sensor frame offset by a random transform: ``scan = inv(T_gt) @ points`` so ``T_gt`` maps
+    scan->map. ``T_init`` is the identity (as in the paper).
     """
     rng = np.random.default_rng(seed)
     map_pts, map_n = scene_points(n_map, seed=scene_seed)
-    world, _ = scene_points(n_scan * 4, seed=scene_seed, sampling_seed=1_000 + seed)
+    if scan_from_map:
+        world = map_pts
+    else:
+        world, _ = scene_points(n_scan * 4, seed=scene_seed, sampling_seed=1_000 + seed)
     near = world[np.linalg.norm(world[:, :2], axis=1) < 30.0]
     pick = rng.choice(near.shape[0], size=n_scan, replace=near.shape[0] < n_scan)
     world = near[pick].astype(np.float64)

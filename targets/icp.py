@@ -214,8 +214,8 @@ def icp(
         step = torch.linalg.norm(delta.detach(), dim=-1)
         newly = active & (step < cfg.tol)
         iterations = torch.where(newly, torch.full_like(iterations, it + 1), iterations)
-        converged |= newly
-        active &= ~newly
+        converged = converged | newly
+        active = active & ~newly
         if not bool(active.any()):
             break
 

@@ -1,0 +1,151 @@
+"""Command-line interface (typer). The only place that prints and exits.
+
+User errors (bad names, budgets, files, checkpoints) exit with status 2 and one readable line.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from icpbench import __version__
+from icpbench.errors import IcpbenchError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Worst-case error of lidar ICP localisation under corrupted scans.")
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"icpbench {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Show the version and exit.")] = False,
+) -> None:
+    """icpbench: attacks x ICP targets x budgets -> Table 1, transfer tables and danger maps."""
+
+
+def _fail(exc: Exception) -> None:
+    typer.echo(f"error: {exc}", err=True)
+    raise typer.Exit(2)
+
+
+def _floats(text: str, what: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"{what} must be comma-separated numbers, got {text!r}") from None
+
+
+@app.command("list")
+def list_plugins() -> None:
+    """List every registered attack, target and dataset, and whether it can load."""
+    from tabulate import tabulate
+
+    from icpbench import registry
+
+    for reg in (registry.attacks, registry.targets, registry.datasets):
+        rows = [(i.name, "yes" if i.available else "NO", i.description if i.available else i.reason)
+                for i in reg.info()]
+        typer.echo(f"\n{reg.kind}s ({reg.group}):")
+        typer.echo(tabulate(rows, headers=["name", "loads", "description / reason"],
+                            tablefmt="simple"))
+
+
+@app.command()
+def run(
+    attacks: Annotated[str, typer.Option(help="'all' or comma-separated attack names.")] = "all",
+    targets: Annotated[str, typer.Option(help="Comma-separated target names.")] = "p2plane",
+    dataset: Annotated[str, typer.Option(help="Registered dataset name.")] = "lidar-sim",
+    budgets: Annotated[str | None, typer.Option(
+        help="Comma-separated budgets λ (metres; default: the dataset's).")] = None,
+    samples: Annotated[int | None, typer.Option(help="Number of test samples (default all).")] = None,
+    seed: Annotated[str, typer.Option(help="Attack seed(s), comma-separated.")] = "0",
+    surrogate: Annotated[str, typer.Option(help="Differentiable target for gradient attacks.")]
+    = "p2plane",
+    split: Annotated[str, typer.Option(help="Dataset split.")] = "test",
+    strict: Annotated[bool, typer.Option(help="Project displacements onto the λ-ball.")] = False,
+    batch_size: Annotated[int, typer.Option(help="Samples per batch.")] = 8,
+    threads: Annotated[int, typer.Option(help="torch threads (1 is fastest on small CPUs).")] = 1,
+    reference: Annotated[str, typer.Option(help="Reference attack of '% Ours is Larger'.")]
+    = "generator",
+    out: Annotated[Path, typer.Option(help="Results directory (re-run to resume).")]
+    = Path("runs/latest"),
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+) -> None:
+    """Run the grid samples x attacks x targets x budgets x seeds and print Table 1."""
+    from icpbench import registry
+    from icpbench.report import render, table1, transfer_frame
+    from icpbench.results import load_results
+    from icpbench.runner import RunConfig
+    from icpbench.runner import run as run_grid
+
+    try:
+        ds_cls = registry.datasets.get(dataset)
+        cfg = RunConfig(
+            dataset=dataset, attacks=registry.attacks.resolve(attacks),
+            targets=registry.targets.resolve(targets),
+            budgets=_floats(budgets, "--budgets") if budgets else list(ds_cls.default_budgets),
+            samples=samples, seeds=[int(s) for s in seed.split(",")], surrogate=surrogate,
+            split=split, strict=strict, batch_size=batch_size, threads=threads)
+        run_grid(cfg, out, progress=not quiet)
+        df = load_results(out)
+        for t in cfg.targets:
+            typer.echo(f"\nTable 1 ({dataset}, target {t}):\n")
+            typer.echo(table1(df, "md", reference=reference, target=t))
+        if len(cfg.targets) > 1:
+            for b in cfg.budgets:
+                typer.echo(f"\nTransfer table (λ={b:g}, surrogate {surrogate}):\n")
+                typer.echo(render(transfer_frame(df, b), "md"))
+        typer.echo(f"\nresults: {out}/results.csv  manifest: {out}/manifest.json")
+    except (IcpbenchError, ValueError) as exc:
+        _fail(exc)
+
+
+@app.command()
+def table(
+    results_dir: Annotated[Path, typer.Argument(help="A directory written by `icpbench run`.")],
+    format: Annotated[str, typer.Option("--format", help="md, latex or csv.")] = "md",
+    reference: Annotated[str, typer.Option(help="Reference attack ('Ours').")] = "generator",
+    target: Annotated[str | None, typer.Option(help="Target (needed if several).")] = None,
+    transfer: Annotated[float | None, typer.Option(
+        help="Print the attacks x targets table at this budget instead.")] = None,
+    out: Annotated[Path | None, typer.Option(help="Write to this file instead of stdout.")] = None,
+) -> None:
+    """Regenerate Table 1 (or the transfer table) from stored results."""
+    from icpbench.report import render, table1, transfer_frame
+    from icpbench.results import load_results
+
+    try:
+        if format not in ("md", "latex", "csv"):
+            raise typer.BadParameter(f"--format must be md, latex or csv, got {format!r}")
+        df = load_results(results_dir)
+        text = (render(transfer_frame(df, transfer), format) if transfer is not None
+                else table1(df, format, reference=reference, target=target))
+        if out is None:
+            typer.echo(text)
+        else:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(text)
+    except (IcpbenchError, ValueError) as exc:
+        _fail(exc)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        typer.echo("interrupted; re-run the same command to resume", err=True)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,194 @@
+"""Reports generated from results only: Table 1 and the transfer table.
+
+Table 1 (Zhang et al. 2025): rows = attacks, and per budget two columns, "Trans Pose Error [m]"
+(mean ± std of ``trans_err_xy`` over converged samples) and "% Ours is Larger" (the share of paired
+samples where the reference attack's error is larger than the row attack's). Pairs share
+(sample, target, budget, seed) and are kept only when both rows converged; a tie counts as "not
+larger". Non-converged and failed rows are excluded and counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from tabulate import tabulate
+
+from icpbench.errors import InputError
+
+Format = Literal["md", "latex", "csv"]
+PAIR_KEYS = ["sample_id", "target", "budget", "seed"]
+
+#: Display names and the paper's row order; unknown attacks go before the reference.
+DISPLAY = {"none": "Original", "uniform": "Uniform", "normal": "Normal",
+           "sector": "Sector (analytic)", "pgd": "PGD (oracle)", "generator": "Ours"}
+ORDER = ["none", "uniform", "normal", "sector", "pgd"]
+
+
+def attack_order(attacks: list[str], reference: str | None) -> list[str]:
+    """Paper order: Original, Uniform, Normal, others (alphabetical), ..., reference last."""
+    known = [a for a in ORDER if a in attacks and a != reference]
+    other = sorted(a for a in attacks if a not in ORDER and a != reference)
+    tail = [reference] if reference in attacks else []
+    return known + other + tail
+
+
+@dataclass
+class Cell:
+    """One (attack, budget) cell of Table 1."""
+
+    mean: float
+    std: float
+    n: int
+    dropped: int
+    pct_ref_larger: float | None
+    n_pairs: int
+
+
+def pct_reference_larger(df: pd.DataFrame, attack: str, reference: str,
+                         metric: str = "trans_err_xy") -> tuple[float | None, int]:
+    """Share (percent) of pairs where ``reference``'s error exceeds ``attack``'s, and the pair count.
+
+    Pairs: same (sample_id, target, budget, seed), both rows converged. Ties are not "larger".
+    Returns (None, 0) when there is no pair.
+    """
+    ok = df[df["converged"]]
+    a = ok[ok["attack"] == attack][PAIR_KEYS + [metric]]
+    r = ok[ok["attack"] == reference][PAIR_KEYS + [metric]]
+    m = a.merge(r, on=PAIR_KEYS, suffixes=("_a", "_r"))
+    if m.empty:
+        return None, 0
+    return float(100.0 * (m[f"{metric}_r"] > m[f"{metric}_a"]).mean()), int(len(m))
+
+
+def table1_cells(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
+                 metric: str = "trans_err_xy") -> dict[tuple[str, float], Cell]:
+    """Compute every cell of Table 1 for one target (default: the only target in ``df``)."""
+    if df.empty:
+        raise InputError("no result rows to tabulate")
+    targets = sorted(df["target"].unique())
+    if target is None:
+        if len(targets) > 1:
+            raise InputError(f"results hold several targets {targets}; choose one with --target")
+        target = targets[0]
+    elif target not in targets:
+        raise InputError(f"target {target!r} not in results; available: {', '.join(targets)}")
+    d = df[df["target"] == target]
+    cells = {}
+    for (attack, budget), g in d.groupby(["attack", "budget"]):
+        ok = g[g["converged"]][metric].to_numpy(dtype=float)
+        pct, n_pairs = (None, 0)
+        if reference in set(d["attack"]) and attack != reference:
+            pct, n_pairs = pct_reference_larger(d[d["budget"] == budget], attack, reference, metric)
+        cells[(attack, float(budget))] = Cell(
+            mean=float(ok.mean()) if ok.size else float("nan"),
+            std=float(ok.std(ddof=0)) if ok.size else float("nan"),
+            n=int(ok.size), dropped=int(len(g) - ok.size), pct_ref_larger=pct, n_pairs=n_pairs)
+    return cells
+
+
+def table1_frame(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
+                 metric: str = "trans_err_xy", decimals: int = 2) -> pd.DataFrame:
+    """Table 1 as a DataFrame of strings (rows = attacks, two columns per budget)."""
+    cells = table1_cells(df, reference, target, metric)
+    attacks = attack_order(sorted({a for a, _ in cells}), reference)
+    budgets = sorted({b for _, b in cells})
+    has_ref = reference in attacks
+    unit = "[m]" if metric.startswith("trans") else "[rad]"
+    rows = []
+    for a in attacks:
+        row = {"Method": DISPLAY.get(a, a)}
+        for b in budgets:
+            c = cells.get((a, b))
+            lam = f"λ={b:g}"
+            if c is None:
+                row[f"{lam} Trans Pose Error {unit}"] = "n/a"
+                row[f"{lam} % Ours is Larger"] = "n/a"
+                continue
+            row[f"{lam} Trans Pose Error {unit}"] = (f"{c.mean:.{decimals}f} ± {c.std:.{decimals}f}"
+                                                     if c.n else "n/a")
+            if not has_ref:
+                row[f"{lam} % Ours is Larger"] = f"({reference} not run)"
+            elif a == reference:
+                row[f"{lam} % Ours is Larger"] = "-"
+            elif c.pct_ref_larger is None:
+                row[f"{lam} % Ours is Larger"] = "no pairs"
+            else:
+                row[f"{lam} % Ours is Larger"] = f"{c.pct_ref_larger:.2f}%"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def table1_counts(df: pd.DataFrame, reference: str = "generator",
+                  target: str | None = None) -> pd.DataFrame:
+    """Per (attack, budget): converged n, dropped (not converged or failed) and pair counts."""
+    cells = table1_cells(df, reference, target)
+    return pd.DataFrame(
+        [{"attack": a, "budget": b, "n": c.n, "dropped": c.dropped, "pairs": c.n_pairs}
+         for (a, b), c in sorted(cells.items())])
+
+
+def health_warnings(df: pd.DataFrame, threshold: float = 0.10) -> list[str]:
+    """Warnings for cells (attack, target, budget) where more than ``threshold`` of the samples
+    did not converge or failed (as AutoAttack's reliability checks flag suspicious evaluations)."""
+    out = []
+    for (a, t, b), g in df.groupby(["attack", "target", "budget"]):
+        bad = 1.0 - g["converged"].mean()
+        if bad > threshold:
+            reasons = g.loc[~g["converged"], "status"].value_counts().to_dict()
+            out.append(f"warning: {a} on {t} at λ={b:g}: {100 * bad:.0f}% of {len(g)} samples "
+                       f"not converged/failed ({', '.join(f'{k}: {v}' for k, v in reasons.items())})")
+    return out
+
+
+def render(frame: pd.DataFrame, fmt: Format = "md") -> str:
+    """Render a table frame as Markdown (GitHub), LaTeX (booktabs) or CSV."""
+    if fmt == "md":
+        return tabulate(frame, headers="keys", tablefmt="github", showindex=False)
+    if fmt == "latex":
+        return tabulate(frame, headers="keys", tablefmt="latex_booktabs", showindex=False)
+    if fmt == "csv":
+        return frame.to_csv(index=False)
+    raise InputError(f"unknown format {fmt!r}; valid: md, latex, csv")
+
+
+def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
+           target: str | None = None) -> str:
+    """Table 1 text, with the counts and health warnings as a footer (md/latex comments)."""
+    frame = table1_frame(df, reference, target)
+    text = render(frame, fmt)
+    if fmt == "csv":
+        return text
+    counts = table1_counts(df, reference, target)
+    sub = df if target is None else df[df["target"] == target]
+    notes = ["n converged / dropped / pairs per cell: " + "; ".join(
+        f"{DISPLAY.get(r.attack, r.attack)} λ={r.budget:g}: {r.n}/{r.dropped}/{r.pairs}"
+        for r in counts.itertuples())]
+    notes += health_warnings(sub)
+    prefix = "% " if fmt == "latex" else ""
+    return text + "\n\n" + "\n".join(prefix + n for n in notes) + "\n"
+
+
+def transfer_frame(df: pd.DataFrame, budget: float | None = None, metric: str = "trans_err_xy",
+                   decimals: int = 2) -> pd.DataFrame:
+    """Attacks x targets table of mean ± std (converged rows) at one budget."""
+    budgets = sorted(df["budget"].unique())
+    if budget is None:
+        budget = budgets[0]
+    if not np.any(np.isclose(budgets, budget)):
+        raise InputError(f"budget {budget} not in results; available: {budgets}")
+    d = df[np.isclose(df["budget"], budget)]
+    attacks = attack_order(sorted(d["attack"].unique()), "generator")
+    targets = list(dict.fromkeys(d["target"]))
+    rows = []
+    for a in attacks:
+        row = {"Attack": DISPLAY.get(a, a)}
+        for t in targets:
+            g = d[(d["attack"] == a) & (d["target"] == t)]
+            ok = g[g["converged"]][metric]
+            row[t] = (f"{ok.mean():.{decimals}f} ± {ok.std(ddof=0):.{decimals}f} (n={len(ok)})"
+                      if len(ok) else f"n/a (0/{len(g)} converged)")
+        rows.append(row)
+    return pd.DataFrame(rows)

@@ -1,0 +1,125 @@
+"""Foundation must-shows for the differentiable ICP targets."""
+
+import numpy as np
+import pytest
+import torch
+
+from icpbench.errors import InputError
+from icpbench.se3 import pose_error_components
+from icpbench.synthetic import scene_sample
+from icpbench.targets.p2plane import PointToPlaneICP
+from icpbench.targets.p2point import PointToPointICP
+from icpbench.types import Batch
+
+SCENE_SCALE_M = 80.0  # side of the synthetic scene's ground square
+
+
+def _run(target, samples):
+    batch = Batch.from_samples(samples)
+    reg = target.register(batch.scans, batch.maps, batch.T_init)
+    return reg, pose_error_components(reg.T, batch.T_gt)
+
+
+@pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
+def test_recovers_known_transform_on_lidar_like_scene(cls):
+    samples = [scene_sample(2_000, 20_000, seed=s, scan_from_map=True) for s in range(3)]
+    reg, err = _run(cls("lidar", d_max=2.0, tol=1e-8, max_iterations=150), samples)
+    assert reg.converged.all(), reg.status
+    assert (err["trans_err"] < 1e-3 * SCENE_SCALE_M).all(), err["trans_err"]
+    assert (torch.rad2deg(err["rot_err"]) < 0.05).all(), err["rot_err"]
+    # With an exact solution available the error is far below the bar.
+    assert err["trans_err"].max() < 1e-4
+
+
+def test_p2plane_recovers_from_independent_samples():
+    """Scan and map are independent surface samples (no exact solution): still cm-level."""
+    samples = [scene_sample(2_000, 20_000, seed=s) for s in range(3)]
+    reg, err = _run(PointToPlaneICP("lidar", d_max=2.0), samples)
+    assert reg.converged.all()
+    assert (err["trans_err"] < 1e-3 * SCENE_SCALE_M).all()
+    assert (torch.rad2deg(err["rot_err"]) < 0.05).all()
+
+
+@pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
+def test_batch_equals_one_by_one(cls):
+    samples = [scene_sample(1_000, 10_000, seed=s, noise_m=0.02) for s in range(3)]
+    tgt = cls("lidar", d_max=2.0)
+    reg_b, _ = _run(tgt, samples)
+    for i, s in enumerate(samples):
+        reg_1, _ = _run(tgt, [s])
+        np.testing.assert_allclose(reg_b.T[i].numpy(), reg_1.T[0].numpy(), atol=1e-12)
+        assert int(reg_b.iterations[i]) == int(reg_1.iterations[0])
+
+
+@pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
+def test_gradient_matches_finite_differences(cls):
+    """d(pose error)/d(scan points), float64, hard d_max filter, association fixed by small eps."""
+    s = scene_sample(300, 4_000, seed=7, noise_m=0.01)
+    tgt = cls("lidar", d_max=1.5, cauchy_c=0.5, max_iterations=8, tol=1e-14)
+    batch = Batch.from_samples([s])
+    w = torch.tensor([1.0, -0.7, 0.3, 2.0, 1.0, -3.0], dtype=torch.float64)
+
+    def loss(scans):
+        reg = tgt.register(scans, batch.maps, batch.T_init)
+        e = pose_error_components(reg.T, batch.T_gt)
+        xi = torch.stack([e[k] for k in ("rho_x", "rho_y", "rho_z", "phi_x", "phi_y", "phi_z")], -1)
+        return (xi * w).sum()
+
+    x = batch.scans.clone().requires_grad_(True)
+    loss(x).backward()
+    g = x.grad
+    rng = np.random.default_rng(0)
+    eps = 1e-6
+    checked = 0
+    for _ in range(12):
+        i, k = int(rng.integers(0, 300)), int(rng.integers(0, 3))
+        xp, xm = batch.scans.clone(), batch.scans.clone()
+        xp[0, i, k] += eps
+        xm[0, i, k] -= eps
+        with torch.no_grad():
+            fd = (loss(xp) - loss(xm)) / (2 * eps)
+        if abs(fd) < 1e-7 and abs(g[0, i, k]) < 1e-7:
+            continue
+        rel = abs(fd - g[0, i, k]) / max(abs(fd), abs(g[0, i, k]))
+        assert rel < 1e-3, (i, k, float(fd), float(g[0, i, k]))
+        checked += 1
+    assert checked >= 8
+
+
+def test_soft_gate_is_differentiable_and_close_to_hard():
+    s = scene_sample(500, 5_000, seed=3, noise_m=0.01)
+    batch = Batch.from_samples([s])
+    hard = PointToPlaneICP("lidar", d_max=2.0).register(batch.scans, batch.maps, batch.T_init)
+    x = batch.scans.clone().requires_grad_(True)
+    soft = PointToPlaneICP("lidar", d_max=2.0, soft_dmax=True).register(x, batch.maps, batch.T_init)
+    soft.T[:, :3, 3].sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    assert torch.linalg.norm(hard.T[0, :3, 3] - soft.T[0, :3, 3].detach()) < 0.05
+
+
+def test_nonfinite_points_are_ignored_and_bad_shapes_raise():
+    s = scene_sample(1_000, 10_000, seed=1)
+    batch = Batch.from_samples([s])
+    scans = batch.scans.clone()
+    scans[0, :50] = float("nan")
+    reg = PointToPlaneICP("lidar", d_max=2.0).register(scans, batch.maps, batch.T_init)
+    err = pose_error_components(reg.T, batch.T_gt)
+    assert torch.isfinite(reg.T).all() and err["trans_err"][0] < 0.05
+    with pytest.raises(InputError, match="shape"):
+        PointToPlaneICP().register(batch.scans[0], batch.maps, batch.T_init)
+    with pytest.raises(InputError, match="maps"):
+        PointToPlaneICP().register(batch.scans, batch.maps * 2, batch.T_init)
+
+
+def test_degenerate_scan_is_flagged_not_crashing():
+    """A planar scan (ground only) leaves x, y and yaw unconstrained: flagged, finite."""
+    s = scene_sample(1_000, 10_000, seed=2)
+    batch = Batch.from_samples([s])
+    ground = batch.scans.clone()
+    ground[..., 2] = 0.0
+    maps = [PointToPlaneICP().prepare(np.c_[np.random.default_rng(0).uniform(-30, 30, (5000, 2)),
+                                            np.zeros(5000)],
+                                      np.tile([0.0, 0.0, 1.0], (5000, 1)))]
+    reg = PointToPlaneICP("lidar").register(ground, maps, batch.T_init)
+    assert torch.isfinite(reg.T).all()
+    assert reg.status[0] == "singular" and not bool(reg.converged[0])
