@@ -1,0 +1,100 @@
+"""Table 1 arithmetic on hand-made results: mean ± std, '% Ours is Larger', ties, drops, pairing."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from icpbench.errors import InputError
+from icpbench.report import (
+    health_warnings,
+    pct_reference_larger,
+    render,
+    table1,
+    table1_cells,
+    table1_frame,
+    transfer_frame,
+)
+
+
+def _row(sample, attack, err, conv=True, budget=1.0, target="p2plane", seed=0):
+    return {"sample_id": sample, "attack": attack, "target": target, "budget": budget,
+            "seed": seed, "trans_err_xy": err, "converged": conv,
+            "status": "ok" if conv else "not_converged"}
+
+
+@pytest.fixture
+def df():
+    rows = [
+        # generator (reference) vs normal: s1 larger, s2 tie, s3 smaller, s4 ref not converged,
+        # s5 only normal (unpaired), s6 normal not converged.
+        _row("s1", "generator", 2.0), _row("s1", "normal", 1.0),
+        _row("s2", "generator", 1.5), _row("s2", "normal", 1.5),
+        _row("s3", "generator", 1.0), _row("s3", "normal", 1.2),
+        _row("s4", "generator", 9.0, conv=False), _row("s4", "normal", 1.1),
+        _row("s5", "normal", 1.3),
+        _row("s6", "generator", 3.0), _row("s6", "normal", 7.0, conv=False),
+        # a different seed is a different pair
+        _row("s1", "generator", 1.0, seed=1), _row("s1", "normal", 2.0, seed=1),
+        _row("s1", "none", 0.1), _row("s2", "none", 0.3),
+    ]
+    return pd.DataFrame(rows)
+
+
+def test_pct_reference_larger_counts_ties_drops_and_unpaired(df):
+    pct, n = pct_reference_larger(df, "normal", "generator")
+    # pairs: (s1,seed0) larger, (s2) tie, (s3) smaller, (s1,seed1) smaller -> 1 of 4
+    assert n == 4
+    assert pct == pytest.approx(25.0)
+
+
+def test_mean_std_over_converged_only(df):
+    cells = table1_cells(df, reference="generator")
+    c = cells[("normal", 1.0)]
+    normal_ok = [1.0, 1.5, 1.2, 1.1, 1.3, 2.0]
+    assert c.n == 6 and c.dropped == 1
+    assert c.mean == pytest.approx(np.mean(normal_ok))
+    assert c.std == pytest.approx(np.std(normal_ok))
+    g = cells[("generator", 1.0)]
+    assert g.n == 5 and g.dropped == 1 and g.pct_ref_larger is None
+
+
+def test_table_rows_ordered_and_reference_last(df):
+    frame = table1_frame(df)
+    assert list(frame["Method"]) == ["Original", "Normal", "Ours"]
+    assert frame.iloc[-1]["λ=1 % Ours is Larger"] == "-"
+    assert frame.iloc[1]["λ=1 % Ours is Larger"] == "25.00%"
+    assert frame.iloc[0]["λ=1 % Ours is Larger"] == "100.00%"
+    assert frame.iloc[0]["λ=1 Trans Pose Error [m]"] == "0.20 ± 0.10"
+
+
+def test_missing_reference_is_said_not_invented(df):
+    frame = table1_frame(df[df["attack"] != "generator"])
+    assert set(frame["λ=1 % Ours is Larger"]) == {"(generator not run)"}
+
+
+def test_formats_parse_back(df):
+    csv_text = render(table1_frame(df), "csv")
+    back = pd.read_csv(pd.io.common.StringIO(csv_text))
+    assert list(back["Method"]) == ["Original", "Normal", "Ours"]
+    md = table1(df, "md")
+    assert "| Method" in md and "n converged / dropped / pairs" in md
+    tex = table1(df, "latex")
+    assert "\\toprule" in tex and "% n converged" in tex
+    with pytest.raises(InputError):
+        render(table1_frame(df), "html")
+
+
+def test_health_warning_over_ten_percent(df):
+    w = health_warnings(df)
+    assert any("generator on p2plane" in x for x in w)
+    assert any("normal on p2plane" in x for x in w)
+    assert not any("none on" in x for x in w)
+
+
+def test_several_targets_need_choice_and_transfer_table(df):
+    df2 = pd.concat([df, df.assign(target="open3d", trans_err_xy=df["trans_err_xy"] * 2)])
+    with pytest.raises(InputError, match="several targets"):
+        table1_frame(df2)
+    tr = transfer_frame(df2, 1.0)
+    assert list(tr.columns) == ["Attack", "p2plane", "open3d"]
+    assert tr.iloc[0]["open3d"].startswith("0.40 ± 0.20")

@@ -1,0 +1,141 @@
+"""Runner: resume after SIGKILL, determinism, failed plugins become rows, manifest contents."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pandas as pd
+import pytest
+import torch
+
+from icpbench import registry
+from icpbench.attacks.base import Attack
+from icpbench.errors import InputError
+from icpbench.results import RESULTS_FILE, ResultsStore, load_results, read_manifest
+from icpbench.runner import RunConfig, run
+
+GRID = ["--dataset", "synthetic", "--attacks", "none,uniform", "--targets", "p2plane",
+        "--budgets", "0.5,1", "--samples", "12", "--batch-size", "2", "--quiet"]
+
+
+def _cli(out, **kw):
+    return subprocess.Popen([sys.executable, "-m", "icpbench.cli", "run", *GRID, "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"}, **kw)
+
+
+def _data_rows(path):
+    if not path.exists():
+        return 0
+    return max(path.read_text().count("\n") - 1, 0)
+
+
+def _sorted(df):
+    keep = [c for c in df.columns if c not in ("attack_time_s", "icp_time_s")]
+    return df[keep].sort_values(["sample_id", "attack", "target", "budget", "seed"]).reset_index(
+        drop=True)
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_equals_uninterrupted(tmp_path):
+    ref, killed = tmp_path / "ref", tmp_path / "killed"
+    assert _cli(ref).wait(timeout=600) == 0
+    p = _cli(killed)
+    csv_path = killed / RESULTS_FILE
+    deadline = time.time() + 300
+    while _data_rows(csv_path) < 4 and p.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    n_partial = _data_rows(csv_path)
+    full = _data_rows(ref / RESULTS_FILE)
+    assert 0 < n_partial < full, (n_partial, full)
+    # simulate a torn write on top of the kill: a partial trailing line must be dropped on resume
+    with open(csv_path, "a") as f:
+        f.write("synthetic/test/000099,none,p2pl")
+    assert _cli(killed).wait(timeout=600) == 0
+    a, b = load_results(ref), load_results(killed)
+    assert len(b) == full == 12 * 2 * 2
+    assert not b.duplicated(["sample_id", "attack", "target", "budget", "seed"]).any()
+    pd.testing.assert_frame_equal(_sorted(a), _sorted(b))
+
+
+def test_same_seed_same_results_and_resume_skips(tmp_path):
+    cfg = dict(dataset="synthetic", attacks=["none", "uniform", "normal"], targets=["p2plane"],
+               budgets=[1.0], samples=4, batch_size=2, dataset_params={"n_samples": 4})
+    run(RunConfig(**cfg), tmp_path / "a", progress=False)
+    run(RunConfig(**cfg), tmp_path / "b", progress=False)
+    pd.testing.assert_frame_equal(_sorted(load_results(tmp_path / "a")),
+                                  _sorted(load_results(tmp_path / "b")))
+    calls = []
+    run(RunConfig(**cfg), tmp_path / "a", progress=False, on_unit=calls.append)
+    assert calls == []  # nothing recomputed
+    assert len(load_results(tmp_path / "a")) == 4 * 3
+
+
+def test_manifest_and_config_mismatch(tmp_path):
+    cfg = RunConfig(dataset="synthetic", attacks=["uniform"], targets=["p2plane"], budgets=[1.0],
+                    samples=2, dataset_params={"n_samples": 2})
+    run(cfg, tmp_path, progress=False)
+    m = read_manifest(tmp_path)
+    assert m["config"]["budgets"] == [1.0] and m["threads"]["torch"] == 1
+    assert m["versions"]["torch"].startswith("2.") and "commit" in m["git"]
+    assert m["targets"]["p2plane"]["cauchy_c"] == 1.0 and m["completed_rows"] == 2
+    with pytest.raises(InputError, match="different configuration"):
+        run(RunConfig(dataset="synthetic", attacks=["uniform"], targets=["p2plane"],
+                      budgets=[2.0], samples=2, dataset_params={"n_samples": 2}),
+            tmp_path, progress=False)
+
+
+class _Crashing(Attack):
+    name = "crashing-test-attack"
+
+    def _perturb(self, batch, budget_m, *, surrogate, generator):
+        raise RuntimeError("boom inside plugin")
+
+
+def test_crashing_plugin_becomes_failed_rows(tmp_path):
+    registry.attacks.register("crashing-test-attack", _Crashing)
+    try:
+        cfg = RunConfig(dataset="synthetic", attacks=["crashing-test-attack", "uniform"],
+                        targets=["p2plane"], budgets=[1.0], samples=2,
+                        dataset_params={"n_samples": 2})
+        run(cfg, tmp_path, progress=False)
+    finally:
+        registry.attacks.unregister("crashing-test-attack")
+    df = load_results(tmp_path)
+    bad = df[df["attack"] == "crashing-test-attack"]
+    assert len(bad) == 2 and (bad["status"] == "error").all() and not bad["converged"].any()
+    assert bad["error"].str.contains("boom inside plugin").all()
+    assert (df[df["attack"] == "uniform"]["status"] == "ok").all()
+
+
+def test_results_store_repairs_torn_line(tmp_path):
+    store = ResultsStore(tmp_path)
+    row = {"sample_id": "a", "attack": "none", "target": "p2plane", "budget": 1.0, "seed": 0,
+           "converged": True, "status": "ok", "meta": {"x": 1}, "extra": {}}
+    store.append([row])
+    store.append([row])  # duplicate key ignored
+    with open(tmp_path / RESULTS_FILE, "a") as f:
+        f.write("b,none,p2pl")
+    store2 = ResultsStore(tmp_path)
+    assert len(store2) == 1
+    df = load_results(tmp_path)
+    assert list(df["sample_id"]) == ["a"] and df["meta.x"].iloc[0] == 1
+
+
+def test_uniform_error_equals_budget_on_synthetic(tmp_path):
+    cfg = RunConfig(dataset="synthetic", attacks=["none", "uniform"], targets=["p2plane"],
+                    budgets=[0.5, 1.0], samples=4, dataset_params={"n_samples": 4})
+    run(cfg, tmp_path, progress=False)
+    df = load_results(tmp_path)
+    for b in (0.5, 1.0):
+        u = df[(df["attack"] == "uniform") & (df["budget"] == b)]
+        assert u["converged"].all()
+        assert abs(u["trans_err_xy"].mean() - b) < 0.1 * b
+        assert (u["disp_max"] - b).abs().max() < 1e-9 and (u["frac_over_budget"] == 0).all()
+    n = df[df["attack"] == "none"]
+    assert n["trans_err_xy"].max() < 0.05 and (n["disp_max"] == 0).all()
+    assert torch.get_num_threads() == 1
