@@ -29,12 +29,12 @@ from typing import ClassVar
 
 import numpy as np
 import torch
-from icpbench.attacks.base import Attack
-from icpbench.targets.base import Target
-from icpbench.targets.icp import icp_config
 
 from icpbench import sector
+from icpbench.attacks.base import Attack
 from icpbench.errors import InputError
+from icpbench.targets.base import Target
+from icpbench.targets.icp import icp_config
 from icpbench.types import Batch
 
 _AXES = {"xy": ("x", "y"), "x": ("x",), "y": ("y",), "z": ("z",), "yaw": ("yaw",)}
