@@ -227,13 +227,13 @@ def mesh_sample(vertices: np.ndarray, triangles: np.ndarray, *, sample_id: str,
 # --------------------------------------------------------------------------------------------
 # Reading meshes
 # --------------------------------------------------------------------------------------------
-def _read_head_tail(path: Path, k: int = 4096) -> tuple[bytes, bytes, int]:
-    """First and last ``k`` bytes of a file and its size."""
+def _read_head_tail(path: Path, n_head: int = 65_536, n_tail: int = 4096) -> tuple[bytes, bytes, int]:
+    """First ``n_head`` and last ``n_tail`` bytes of a file, and its size."""
     size = path.stat().st_size
     with path.open("rb") as f:
-        head = f.read(k)
-        f.seek(max(size - k, 0))
-        tail = f.read(k)
+        head = f.read(n_head)
+        f.seek(max(size - n_tail, 0))
+        tail = f.read(n_tail)
     return head, tail, size
 
 
@@ -241,7 +241,7 @@ def _declared_counts(path: Path) -> tuple[int | None, int | None, str]:
     """(vertices, faces) that a mesh file's header declares (None where the format declares
     none) and a non-empty reason when the file is structurally incomplete.
 
-    Only the first and last 4 kB are read: OFF and PLY headers give the counts, a binary STL's
+    Only the first 64 kB and the last 4 kB are read: OFF and PLY headers give the counts, a binary STL's
     size must be 84 + 50 bytes per declared triangle, an ASCII STL must end with ``endsolid``,
     and an OBJ's last ``v``/``f`` line must be complete (OBJ declares no counts).
     """
