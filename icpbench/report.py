@@ -89,10 +89,19 @@ def table1_cells(df: pd.DataFrame, reference: str = "generator", target: str | N
     return cells
 
 
+def auto_decimals(budgets) -> int:
+    """Decimals that resolve the smallest budget to ~1%: 2 for metres-scale budgets (as in the
+    paper), 4 for the normalised objects budgets 0.02/0.05."""
+    smallest = float(np.min(np.asarray(list(budgets), dtype=float)))
+    return 2 if smallest >= 1.0 else 2 + int(np.ceil(-np.log10(smallest)))
+
+
 def table1_frame(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
-                 metric: str = "trans_err_xy", decimals: int = 2) -> pd.DataFrame:
+                 metric: str = "trans_err_xy", decimals: int | None = None) -> pd.DataFrame:
     """Table 1 as a DataFrame of strings (rows = attacks, two columns per budget)."""
     cells = table1_cells(df, reference, target, metric)
+    if decimals is None:
+        decimals = auto_decimals(b for _, b in cells)
     attacks = attack_order(sorted({a for a, _ in cells}), reference)
     budgets = sorted({b for _, b in cells})
     has_ref = reference in attacks
@@ -172,7 +181,7 @@ def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
 
 
 def transfer_frame(df: pd.DataFrame, budget: float | None = None, metric: str = "trans_err_xy",
-                   decimals: int = 2) -> pd.DataFrame:
+                   decimals: int | None = None) -> pd.DataFrame:
     """Attacks x targets table of mean ± std (converged rows) at one budget."""
     budgets = sorted(df["budget"].unique())
     if budget is None:
@@ -180,6 +189,8 @@ def transfer_frame(df: pd.DataFrame, budget: float | None = None, metric: str = 
     if not np.any(np.isclose(budgets, budget)):
         raise InputError(f"budget {budget} not in results; available: {budgets}")
     d = df[np.isclose(df["budget"], budget)]
+    if decimals is None:
+        decimals = auto_decimals([budget])
     attacks = attack_order(sorted(d["attack"].unique()), "generator")
     targets = list(dict.fromkeys(d["target"]))
     rows = []
