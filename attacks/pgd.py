@@ -18,6 +18,7 @@ import torch
 from icpbench.attacks.base import Attack, project_to_ball
 from icpbench.errors import InputError
 from icpbench.losses import weighted_pose_error
+from icpbench.losses import weights as weight_vector
 from icpbench.se3 import pose_error
 from icpbench.targets.base import Target
 from icpbench.types import Batch
@@ -54,7 +55,7 @@ class PGDAttack(Attack):
             raise InputError(f"pgd step_size must be > 0, got {step_size}")
         self.steps, self.step_size, self.restarts = int(steps), float(step_size), int(restarts)
         self.random_start, self.icp_iterations = bool(random_start), int(icp_iterations)
-        self.w = globals()["weights"](weights)
+        self.w = weight_vector(weights)
 
     def _surrogate(self, surrogate: Target) -> Target:
         cfg = getattr(surrogate, "config", None)
