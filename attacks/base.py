@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import torch
-from icpbench.targets.base import Target
 
 from icpbench.errors import InputError
+from icpbench.targets.base import Target
 from icpbench.types import Batch
 
 STAT_COLUMNS = ("disp_max", "disp_mean", "disp_p95", "frac_over_budget")

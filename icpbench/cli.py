@@ -44,6 +44,30 @@ def _floats(text: str, what: str) -> list[float]:
         raise typer.BadParameter(f"{what} must be comma-separated numbers, got {text!r}") from None
 
 
+def _kv(item: str, flag: str) -> tuple[str, object]:
+    import yaml
+
+    if "=" not in item:
+        raise typer.BadParameter(f"{flag} expects KEY=VALUE, got {item!r}")
+    k, v = item.split("=", 1)
+    return k.strip(), yaml.safe_load(v)
+
+
+def _flat(items: list[str] | None, flag: str) -> dict:
+    return dict(_kv(i, flag) for i in items or [])
+
+
+def _nested(items: list[str] | None, flag: str) -> dict[str, dict]:
+    out: dict[str, dict] = {}
+    for i in items or []:
+        k, v = _kv(i, flag)
+        if "." not in k:
+            raise typer.BadParameter(f"{flag} expects NAME.KEY=VALUE, got {i!r}")
+        name, key = k.split(".", 1)
+        out.setdefault(name, {})[key] = v
+    return out
+
+
 @app.command("list")
 def list_plugins() -> None:
     """List every registered attack, target and dataset, and whether it can load."""
@@ -78,6 +102,14 @@ def run(
     = "generator",
     out: Annotated[Path, typer.Option(help="Results directory (re-run to resume).")]
     = Path("runs/latest"),
+    attack_param: Annotated[list[str] | None, typer.Option(
+        help="Attack setting NAME.KEY=VALUE, repeatable (e.g. generator.checkpoint=gen.pt).")]
+    = None,
+    target_param: Annotated[list[str] | None, typer.Option(
+        help="Target setting NAME.KEY=VALUE, repeatable (e.g. p2plane.max_iterations=50).")]
+    = None,
+    dataset_param: Annotated[list[str] | None, typer.Option(
+        help="Dataset setting KEY=VALUE, repeatable (e.g. root=/data/kitti).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Run the grid samples x attacks x targets x budgets x seeds and print Table 1."""
@@ -94,7 +126,10 @@ def run(
             targets=registry.targets.resolve(targets),
             budgets=_floats(budgets, "--budgets") if budgets else list(ds_cls.default_budgets),
             samples=samples, seeds=[int(s) for s in seed.split(",")], surrogate=surrogate,
-            split=split, strict=strict, batch_size=batch_size, threads=threads)
+            split=split, strict=strict, batch_size=batch_size, threads=threads,
+            attack_params=_nested(attack_param, "--attack-param"),
+            target_params=_nested(target_param, "--target-param"),
+            dataset_params=_flat(dataset_param, "--dataset-param"))
         run_grid(cfg, out, progress=not quiet)
         df = load_results(out)
         for t in cfg.targets:
@@ -134,6 +169,52 @@ def table(
         else:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(text)
+    except (IcpbenchError, ValueError) as exc:
+        _fail(exc)
+
+
+@app.command()
+def train(
+    preset: Annotated[str, typer.Option(help="quick-lidar, paper-lidar, quick-objects, paper-objects.")]
+    = "quick-lidar",
+    out: Annotated[Path, typer.Option(help="Output directory (re-run to resume).")]
+    = Path("runs/train"),
+    budgets: Annotated[str | None, typer.Option(help="λ values; several = one conditioned model.")]
+    = None,
+    weights: Annotated[str | None, typer.Option(help="xy, x-only or theta-only.")] = None,
+    epochs: Annotated[int | None, typer.Option(help="Attack-phase epochs.")] = None,
+    pretrain_epochs: Annotated[int | None, typer.Option(help="Pretraining epochs.")] = None,
+    train_samples: Annotated[int | None, typer.Option(help="Training samples per epoch.")] = None,
+    eval_samples: Annotated[int | None, typer.Option(help="Held-out evaluation samples.")] = None,
+    batch_size: Annotated[int | None, typer.Option(help="Batch size.")] = None,
+    lr: Annotated[float | None, typer.Option(help="Learning rate.")] = None,
+    device: Annotated[str | None, typer.Option(help="cpu or cuda.")] = None,
+    threads: Annotated[int | None, typer.Option(help="torch threads.")] = None,
+    max_minutes: Annotated[float | None, typer.Option(help="Stop after this much training.")]
+    = None,
+    dataset_param: Annotated[list[str] | None, typer.Option(help="Dataset KEY=VALUE.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+) -> None:
+    """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
+    from icpbench.training import train as run_training
+    from icpbench.training import train_config
+
+    try:
+        over = {k: v for k, v in dict(
+            weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
+            train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
+            device=device, threads=threads, max_minutes=max_minutes).items() if v is not None}
+        if budgets:
+            over["budgets"] = _floats(budgets, "--budgets")
+        if dataset_param:
+            over["dataset_params"] = _flat(dataset_param, "--dataset-param")
+        card = run_training(train_config(preset, **over), out, progress=not quiet,
+                            log=None if quiet else typer.echo)
+        typer.echo(f"checkpoint: {out}/generator.pt")
+        for lam, r in card.get("heldout_eval", {}).items():
+            typer.echo(f"held-out λ={lam}: mean trans_err_xy {r['trans_err_xy_mean']} m "
+                       f"({r['converged']}/{r['samples']} converged), mean max displacement "
+                       f"{r['disp_max_mean']:.3f}")
     except (IcpbenchError, ValueError) as exc:
         _fail(exc)
 

@@ -59,11 +59,11 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import open3d as o3d
 import torch
-from icpbench.targets.base import Target
-from icpbench.targets.icp import ICPConfig, config_dict, icp_config
+from scipy.spatial.transform import Rotation
 
 from icpbench.errors import InputError
-from icpbench.se3 import se3_log
+from icpbench.targets.base import Target
+from icpbench.targets.icp import ICPConfig, config_dict, icp_config
 from icpbench.types import Registration, validate_cloud
 
 _reg = o3d.pipelines.registration
@@ -256,9 +256,16 @@ def _batch_to_numpy(scans: torch.Tensor, maps: Sequence[Any], T_init: torch.Tens
 
 
 def _increment_norm(T_from: np.ndarray, T_to: np.ndarray) -> float:
-    """``||log(T_to T_from^-1)||`` of the left increment, [rho, phi] in m and rad (mixed)."""
-    D = torch.as_tensor(T_to @ np.linalg.inv(T_from), dtype=torch.float64)
-    return float(torch.linalg.norm(se3_log(D)))
+    """``||log(T_to T_from^-1)||`` of the left increment ``[rho, phi]`` (m and rad mixed), the
+    quantity our ICP and KISS test against their tolerance (NumPy: ~40x cheaper than torch here)."""
+    D = T_to @ np.linalg.inv(T_from)
+    phi = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+    th = float(np.linalg.norm(phi))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    # inverse left Jacobian of SO(3); series 1/12 + th^2/720 near 0
+    c = 1 / 12 + th**2 / 720 if th < 1e-4 else 1 / th**2 - (1 + np.cos(th)) / (2 * th * np.sin(th))
+    rho = (np.eye(3) - 0.5 * K + c * K @ K) @ D[:3, 3]
+    return float(np.sqrt(rho @ rho + th**2))
 
 
 def _status(T: np.ndarray, n_inliers: int, H: np.ndarray | None, converged: bool,

@@ -7,10 +7,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from icpbench.targets.base import Target
-from icpbench.targets.icp import ICPConfig, Mode, config_dict, icp, icp_config
 
 from icpbench.mapindex import MapIndex
+from icpbench.targets.base import Target
+from icpbench.targets.icp import ICPConfig, Mode, config_dict, icp, icp_config
 from icpbench.types import Registration
 
 
