@@ -110,6 +110,9 @@ def run(
     = None,
     dataset_param: Annotated[list[str] | None, typer.Option(
         help="Dataset setting KEY=VALUE, repeatable (e.g. root=/data/kitti).")] = None,
+    executor: Annotated[str, typer.Option(
+        help="Where units run: local (this process) or ray (a Ray cluster: RAY_ADDRESS, else a "
+             "local one; pip install 'icpbench[ray]'). Results are the same.")] = "local",
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Run the grid samples x attacks x targets x budgets x seeds and print Table 1."""
@@ -129,7 +132,7 @@ def run(
             split=split, strict=strict, batch_size=batch_size, threads=threads,
             attack_params=_nested(attack_param, "--attack-param"),
             target_params=_nested(target_param, "--target-param"),
-            dataset_params=_flat(dataset_param, "--dataset-param"))
+            dataset_params=_flat(dataset_param, "--dataset-param"), executor=executor)
         run_grid(cfg, out, progress=not quiet)
         df = load_results(out)
         for t in cfg.targets:

@@ -1,0 +1,288 @@
+"""Index precompute for the PointNet++ generator: everything the network gathers, from the clean scan.
+
+The generator (Zhang et al., ICRA 2025, §III-B; PointNet++ by Qi et al., NeurIPS 2017) only needs
+*indices* and *interpolation weights* that depend on the clean scan X, never on the perturbed one.
+They are computed here once per sample, outside autograd, with a C++ farthest-point sampler
+(``fpsample``) and SciPy KD-trees, so the training loop only gathers and runs shared MLPs.
+
+Levels and index spaces (``n1 = N``, ``n_k = floor(N / a_k)`` with ``(a_2, a_3, a_4) = (a, b, c)``):
+
+* level 1: all N points in their original order (identity centroids);
+* levels 2-4: the first ``n_2``, ``n_3``, ``n_4`` entries of ONE farthest-point sampling (FPS) of
+  ``n_2`` points. FPS restarted on an FPS prefix with the same start point reproduces that prefix,
+  so the prefixes are exactly nested FPS (research note B.4). Level-k points are
+  ``X[fps_idx[:n_k]]`` and level-k features are stored in that order, so an index into level k is
+  a position in ``fps_idx``;
+* ``groups[0]`` (B, N, K): K nearest level-1 points of every point (itself included);
+  ``groups[k-1]`` (B, n_k, K): K nearest level-(k-1) points of every level-k point, as indices
+  into level k-1 (level 1: into the N scan points);
+* ``interp_idx[j]``/``interp_w[j]`` (B, N, k_interp), j = 0, 1, 2 for levels 2, 3, 4: the k_interp
+  nearest level-k points of every scan point and normalised inverse-distance weights
+  ``w_i = d_i^-p / sum_j d_j^-p`` with ``p = idw_power``. Default ``p = 2``: PointNet++ eq. (2)
+  and the implementation the paper cites (yanx27/Pointnet_Pointnet2_pytorch) weight by inverse
+  *squared* distance; the paper's wording "inversely proportional to their distances" is also
+  available as ``p = 1``.
+
+Determinism and permutation equivariance: nothing is random. The FPS start is the point farthest
+from the centroid (ties, within 1e-12 relative, broken by the lexicographically largest
+coordinates), so permuting the input points permutes level 1 and leaves the level 2-4 point
+sequences unchanged. Exact ties inside FPS or kNN (duplicate points, symmetric layouts) are broken
+by index order by the libraries, so equivariance holds for clouds in general position. The fast
+``fps="bucket"`` sampler (QuickFPS, ``fpsample.bucket_fps_kdline_sampling``) is 5-15x faster but
+approximate: it picks a different set (56-73 % overlap with exact FPS in our tests) and is NOT
+permutation-equivariant.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Literal
+
+import fpsample
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from icpbench.errors import InputError
+from icpbench.types import validate_cloud
+
+FPSMethod = Literal["exact", "bucket"]
+
+#: KD-tree height of the bucket sampler (bucket size 2**h); fastest of h in {3, 5, 7} at N=10,000.
+_BUCKET_HEIGHT = 5
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """Parameters of the index precompute.
+
+    Attributes:
+        a, b, c: level-2/3/4 point counts are ``floor(N / a)``, ``floor(N / b)``, ``floor(N / c)``
+            (paper: 2, 4, 8 for objects with N = 2,048; 3, 12, 48 for lidar with N = 10,000);
+            ``1 <= a <= b <= c``.
+        k: neighbours per set-abstraction group (K = 32).
+        k_interp: neighbours of the inverse-distance interpolation (3).
+        idw_power: exponent p of the interpolation weights ``d^-p`` (2: PointNet++; 1: 1/d).
+        fps: ``"exact"`` (vanilla FPS, permutation-equivariant) or ``"bucket"`` (approximate).
+    """
+
+    a: float = 2.0
+    b: float = 4.0
+    c: float = 8.0
+    k: int = 32
+    k_interp: int = 3
+    idw_power: float = 2.0
+    fps: FPSMethod = "exact"
+
+    def __post_init__(self) -> None:
+        for name in ("a", "b", "c", "idw_power"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise InputError(f"{name} must be a finite number, got {v!r}")
+            object.__setattr__(self, name, float(v))  # 2 and 2.0 serialise alike
+        if not 1.0 <= self.a <= self.b <= self.c:
+            raise InputError(f"need 1 <= a <= b <= c for nested levels, got a, b, c = "
+                             f"{self.a}, {self.b}, {self.c}")
+        for name in ("k", "k_interp"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise InputError(f"{name} must be a positive integer, got {v!r}")
+        if self.idw_power <= 0:
+            raise InputError(f"idw_power must be > 0, got {self.idw_power}")
+        if self.fps not in ("exact", "bucket"):
+            raise InputError(f"fps must be 'exact' or 'bucket', got {self.fps!r}")
+
+    def level_sizes(self, n_points: int) -> tuple[int, int, int, int]:
+        """Point counts (N, n2, n3, n4) of the four levels for a scan of ``n_points``."""
+        return (n_points, int(n_points // self.a), int(n_points // self.b),
+                int(n_points // self.c))
+
+    def min_points(self) -> int:
+        """Smallest N for which every level is large enough (K <= n3, k_interp <= n4)."""
+        n = max(self.k, math.ceil(self.k * self.b), math.ceil(self.k_interp * self.c))
+        while True:  # floor() can make the bound above one or two points short
+            N, n2, n3, n4 = self.level_sizes(n)
+            if min(N, n2, n3) >= self.k and n4 >= self.k_interp:
+                return n
+            n += 1
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Precomputed indices and weights for a batch of B scans of N points (see module docstring).
+
+    Attributes:
+        config: the parameters used.
+        fps_idx: (B, n2) int64 indices into the N scan points; levels 3 and 4 are its prefixes.
+        groups: 4 int64 tensors (B, N, K), (B, n2, K), (B, n3, K), (B, n4, K); level k indexes
+            level k-1 (level 1 and level 2 index the N scan points).
+        interp_idx: 3 int64 tensors (B, N, k_interp) into levels 2, 3, 4.
+        interp_w: 3 float32 tensors (B, N, k_interp), rows sum to 1.
+    """
+
+    config: GeometryConfig
+    fps_idx: torch.Tensor
+    groups: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+    interp_idx: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+    interp_w: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.fps_idx.shape[0])
+
+    @property
+    def sizes(self) -> tuple[int, int, int, int]:
+        """(N, n2, n3, n4)."""
+        return (int(self.groups[0].shape[1]), int(self.groups[1].shape[1]),
+                int(self.groups[2].shape[1]), int(self.groups[3].shape[1]))
+
+    def to(self, device: torch.device | str) -> Geometry:
+        """A copy with every tensor on ``device``."""
+        return Geometry(self.config, self.fps_idx.to(device),
+                        tuple(g.to(device) for g in self.groups),  # type: ignore[arg-type]
+                        tuple(i.to(device) for i in self.interp_idx),  # type: ignore[arg-type]
+                        tuple(w.to(device) for w in self.interp_w))  # type: ignore[arg-type]
+
+    def select(self, index: Sequence[int] | torch.Tensor) -> Geometry:
+        """The geometry of a sub-batch (``index`` into the batch dimension)."""
+        ix = torch.as_tensor(index, dtype=torch.long)
+        return Geometry(self.config, self.fps_idx[ix],
+                        tuple(g[ix] for g in self.groups),  # type: ignore[arg-type]
+                        tuple(i[ix] for i in self.interp_idx),  # type: ignore[arg-type]
+                        tuple(w[ix] for w in self.interp_w))  # type: ignore[arg-type]
+
+    @staticmethod
+    def stack(items: Sequence[Geometry]) -> Geometry:
+        """Concatenate geometries (same config and N) along the batch dimension."""
+        if len(items) == 0:
+            raise InputError("cannot stack zero geometries")
+        cfg, sizes = items[0].config, items[0].sizes
+        for g in items[1:]:
+            if g.config != cfg:
+                raise InputError(f"cannot stack geometries with different configs: {cfg} vs {g.config}")
+            if g.sizes != sizes:
+                raise InputError(f"cannot stack geometries of different scan sizes: {sizes} vs {g.sizes}")
+        return Geometry(
+            cfg, torch.cat([g.fps_idx for g in items]),
+            tuple(torch.cat([g.groups[j] for g in items]) for j in range(4)),  # type: ignore[arg-type]
+            tuple(torch.cat([g.interp_idx[j] for g in items]) for j in range(3)),  # type: ignore[arg-type]
+            tuple(torch.cat([g.interp_w[j] for g in items]) for j in range(3)),  # type: ignore[arg-type]
+        )
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Flat numpy arrays (for an ``np.savez`` cache); inverse of :meth:`from_arrays`."""
+        out: dict[str, np.ndarray] = {"fps_idx": self.fps_idx.cpu().numpy()}
+        for j in range(4):
+            out[f"group{j + 1}"] = self.groups[j].cpu().numpy()
+        for j in range(3):
+            out[f"interp_idx{j + 2}"] = self.interp_idx[j].cpu().numpy()
+            out[f"interp_w{j + 2}"] = self.interp_w[j].cpu().numpy()
+        out["config_json"] = np.array(json.dumps(asdict(self.config), sort_keys=True))
+        return out
+
+    @staticmethod
+    def from_arrays(arrays: dict[str, Any], config: GeometryConfig) -> Geometry:
+        """Rebuild from :meth:`to_arrays`; ``config`` must be the one they were computed with."""
+        stored = str(np.asarray(arrays["config_json"]))
+        if stored != json.dumps(asdict(config), sort_keys=True):
+            raise InputError(f"cached geometry was computed with {stored}, not {config}; recompute it")
+        t = {k: torch.as_tensor(np.asarray(v)) for k, v in arrays.items() if k != "config_json"}
+        return Geometry(config, t["fps_idx"],
+                        (t["group1"], t["group2"], t["group3"], t["group4"]),
+                        (t["interp_idx2"], t["interp_idx3"], t["interp_idx4"]),
+                        (t["interp_w2"], t["interp_w3"], t["interp_w4"]))
+
+
+def fps_start_index(points: np.ndarray) -> int:
+    """Permutation-invariant FPS start: the point farthest from the centroid; near-ties (1e-12
+    relative) go to the lexicographically largest (x, y, z)."""
+    d2 = ((points - points.mean(axis=0)) ** 2).sum(axis=1)
+    cand = np.flatnonzero(d2 >= d2.max() * (1.0 - 1e-12))
+    if cand.size == 1:
+        return int(cand[0])
+    p = points[cand]
+    return int(cand[np.lexsort((p[:, 2], p[:, 1], p[:, 0]))[-1]])
+
+
+def farthest_point_indices(points: np.ndarray, n_samples: int, method: FPSMethod = "exact") -> np.ndarray:
+    """``n_samples`` FPS indices (int64) into ``points`` (N, 3), in selection order, starting from
+    :func:`fps_start_index`. ``fpsample`` computes in float32."""
+    start = fps_start_index(points)
+    if method == "exact":
+        idx = fpsample.fps_sampling(points, n_samples, start_idx=start)
+    else:
+        idx = fpsample.bucket_fps_kdline_sampling(
+            points, n_samples, min(_BUCKET_HEIGHT, int(math.log2(points.shape[0]))), start_idx=start)
+    return np.asarray(idx, dtype=np.int64)
+
+
+def _knn(tree: cKDTree, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices (Q, k) of the k nearest tree points of each query (2-D even for k=1)."""
+    d, i = tree.query(queries, k=k)
+    return np.reshape(d, (len(queries), k)), np.reshape(i, (len(queries), k))
+
+
+def _idw(dist: np.ndarray, power: float) -> np.ndarray:
+    """Normalised inverse-distance weights (rows sum to 1) from neighbour distances (n, k)."""
+    w = 1.0 / (dist**power + 1e-12)
+    return w / w.sum(axis=1, keepdims=True)
+
+
+def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig | None = None) -> Geometry:
+    """Precompute the indices and weights of one clean scan.
+
+    Args:
+        points: (N, 3) clean scan (any frame; float32/float64, finite). Unit-free: kNN and FPS are
+            scale-invariant, only the interpolation weights' epsilon (1e-12) assumes distances well
+            above 1e-6.
+        config: level sizes, K, interpolation; default :class:`GeometryConfig()`.
+
+    Returns:
+        A :class:`Geometry` with batch size 1.
+
+    Raises:
+        InputError: bad array, or N too small for the levels (the message gives the minimum).
+    """
+    cfg = config or GeometryConfig()
+    x = validate_cloud(points, "scan").astype(np.float64, copy=False)
+    N, n2, n3, n4 = cfg.level_sizes(x.shape[0])
+    if min(N, n2, n3) < cfg.k or n4 < cfg.k_interp:
+        raise InputError(
+            f"a scan of {N} points gives levels of ({N}, {n2}, {n3}, {n4}) points with a, b, c = "
+            f"{cfg.a}, {cfg.b}, {cfg.c}; K = {cfg.k} needs n3 >= K and k_interp = {cfg.k_interp} "
+            f"needs n4 >= k_interp: use at least {cfg.min_points()} points or smaller a, b, c, K")
+    fps = farthest_point_indices(x, n2, cfg.fps)
+    lvl = [x, x[fps], x[fps[:n3]], x[fps[:n4]]]
+    trees = [cKDTree(p) for p in lvl]
+    groups = [_knn(trees[0], lvl[0], cfg.k)[1]]
+    for k in (1, 2, 3):  # level k+1 centroids grouped over level k
+        groups.append(_knn(trees[k - 1], lvl[k], cfg.k)[1])
+    interp_idx, interp_w = [], []
+    for k in (1, 2, 3):
+        d, i = _knn(trees[k], x, cfg.k_interp)
+        interp_idx.append(torch.from_numpy(i.astype(np.int64))[None])
+        interp_w.append(torch.from_numpy(_idw(d, cfg.idw_power).astype(np.float32))[None])
+    return Geometry(
+        cfg, torch.from_numpy(fps)[None],
+        tuple(torch.from_numpy(g.astype(np.int64))[None] for g in groups),  # type: ignore[arg-type]
+        tuple(interp_idx),  # type: ignore[arg-type]
+        tuple(interp_w),  # type: ignore[arg-type]
+    )
+
+
+def compute_geometry_batch(scans: np.ndarray | torch.Tensor | Sequence[np.ndarray],
+                           config: GeometryConfig | None = None) -> Geometry:
+    """:func:`compute_geometry` for each of B clean scans (B, N, 3), stacked."""
+    if isinstance(scans, torch.Tensor):
+        scans = scans.detach().cpu().numpy()
+    if len(scans) == 0:
+        raise InputError("scans is empty (0 samples)")
+    return Geometry.stack([compute_geometry(s, config) for s in scans])
+
+
+def config_fields() -> tuple[str, ...]:
+    """Names of the :class:`GeometryConfig` fields (used by the generator config)."""
+    return tuple(f.name for f in fields(GeometryConfig))

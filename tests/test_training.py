@@ -1,0 +1,56 @@
+"""Training loop: a tiny objects run writes a checkpoint + card, resumes, and the `generator`
+attack loads it through the runner."""
+
+import json
+
+import pytest
+
+from icpbench.errors import CheckpointError
+from icpbench.results import load_results
+from icpbench.runner import RunConfig, run
+from icpbench.training import train, train_config
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("train")
+    cfg = train_config("quick-objects", train_samples=4, eval_samples=2, batch_size=2,
+                       pretrain_epochs=1, epochs=1, dataset_params={"n_samples": 4})
+    card = train(cfg, out, progress=False)
+    return cfg, out, card
+
+
+def test_checkpoint_card_and_history(trained):
+    cfg, out, card = trained
+    assert (out / "generator.pt").exists() and (out / "generator.json").exists()
+    meta = json.loads((out / "generator.json").read_text())
+    assert meta["card"]["epochs_done"] == 2 and meta["card"]["budgets_m"] == [0.05]
+    ev = card["heldout_eval"]["0.05"]
+    assert ev["samples"] == 2 and ev["disp_max_mean"] >= 0
+    lines = (out / "history.csv").read_text().strip().splitlines()
+    assert [ln.split(",")[1] for ln in lines[1:]] == ["pretrain", "attack"]
+
+
+def test_resume_does_not_repeat_epochs(trained):
+    cfg, out, _ = trained
+    train(cfg, out, progress=False)
+    assert len((out / "history.csv").read_text().strip().splitlines()) == 3
+
+
+def test_generator_attack_via_runner(trained, tmp_path):
+    _, out, _ = trained
+    cfg = RunConfig(dataset="objects", attacks=["none", "generator"], targets=["p2plane"],
+                    budgets=[0.05], samples=2, dataset_params={"n_samples": 2},
+                    attack_params={"generator": {"checkpoint": str(out / "generator.pt")}})
+    run(cfg, tmp_path, progress=False)
+    df = load_results(tmp_path)
+    g = df[df["attack"] == "generator"]
+    assert len(g) == 2 and (g["status"] != "error").all(), g["error"].tolist()
+    assert (g["disp_max"] > 0).all()
+
+
+def test_missing_shipped_checkpoint_is_a_clear_error():
+    from icpbench.attacks.generator import resolve_checkpoint
+
+    with pytest.raises(CheckpointError, match="no shipped generator checkpoint"):
+        resolve_checkpoint("no-such-dataset", 1.0)
