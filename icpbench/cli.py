@@ -5,6 +5,7 @@ User errors (bad names, budgets, files, checkpoints) exit with status 2 and one 
 
 from __future__ import annotations
 
+import re
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -35,6 +36,37 @@ def _main(
 def _fail(exc: Exception) -> None:
     typer.echo(f"error: {exc}", err=True)
     raise typer.Exit(2)
+
+
+#: A plugin constructor called with parameters it does not take (``--dataset-param bogus=1``, a
+#: dataset that needs ``root=``): the user's mistake, reported like the other user errors.
+_SIGNATURE = re.compile(r"^(?P<owner>[\w.]+)\.__init__\(\) (?P<what>(got an unexpected keyword "
+                        r"argument|missing \d+ required (keyword-only |positional )?arguments?).*)$")
+
+
+def _user_error(exc: Exception) -> None:
+    """Exit 2 with one line for a user error (bad names, values, files, parameters); re-raise
+    anything else (a bug keeps its traceback)."""
+    if isinstance(exc, IcpbenchError | ValueError):
+        _fail(exc)
+    if isinstance(exc, typer.BadParameter):
+        _fail(Exception(exc.format_message()))
+    if isinstance(exc, OSError):  # --out is a file, permission denied, disk full, ...
+        where = f": {exc.filename}" if exc.filename else ""
+        _fail(Exception(f"{exc.strerror or exc}{where}"))
+    m = _SIGNATURE.match(str(exc)) if isinstance(exc, TypeError) else None
+    if m is not None:
+        _fail(Exception(f"bad parameters for {m['owner']}: {m['what']} (set plugin parameters with "
+                        "--dataset-param KEY=VALUE, --attack-param NAME.KEY=VALUE or "
+                        "--target-param NAME.KEY=VALUE)"))
+    raise exc
+
+
+def _ints(text: str, what: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"{what} must be comma-separated integers, got {text!r}") from None
 
 
 def _floats(text: str, what: str) -> list[float]:
@@ -123,12 +155,14 @@ def run(
     from icpbench.runner import run as run_grid
 
     try:
+        if threads < 1:
+            raise typer.BadParameter(f"--threads must be >= 1, got {threads}")
         ds_cls = registry.datasets.get(dataset)
         cfg = RunConfig(
             dataset=dataset, attacks=registry.attacks.resolve(attacks),
             targets=registry.targets.resolve(targets),
             budgets=_floats(budgets, "--budgets") if budgets else list(ds_cls.default_budgets),
-            samples=samples, seeds=[int(s) for s in seed.split(",")], surrogate=surrogate,
+            samples=samples, seeds=_ints(seed, "--seed"), surrogate=surrogate,
             split=split, strict=strict, batch_size=batch_size, threads=threads,
             attack_params=_nested(attack_param, "--attack-param"),
             target_params=_nested(target_param, "--target-param"),
@@ -143,8 +177,8 @@ def run(
                 typer.echo(f"\nTransfer table (λ={b:g}, surrogate {surrogate}):\n")
                 typer.echo(render(transfer_frame(df, b), "md"))
         typer.echo(f"\nresults: {out}/results.csv  manifest: {out}/manifest.json")
-    except (IcpbenchError, ValueError) as exc:
-        _fail(exc)
+    except Exception as exc:
+        _user_error(exc)
 
 
 @app.command()
@@ -172,6 +206,53 @@ def table(
         else:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(text)
+    except Exception as exc:
+        _user_error(exc)
+
+
+@app.command("map")
+def danger_map(
+    attack: Annotated[str, typer.Option(help="Attack that estimates the worst case.")]
+    = "generator",
+    budget: Annotated[float, typer.Option(help="Budget λ in metres.")] = 1.0,
+    dataset: Annotated[str, typer.Option(help="A route dataset (lidar-sim, kitti, boreas).")]
+    = "lidar-sim",
+    split: Annotated[str, typer.Option(help="Dataset split (test passes).")] = "test",
+    samples: Annotated[int | None, typer.Option(help="Locations x passes (default all).")] = None,
+    compare: Annotated[str | None, typer.Option(
+        help="Also run this attack and write the difference figure (paper fig. 6), e.g. sector.")]
+    = None,
+    attack_param: Annotated[list[str] | None, typer.Option(help="NAME.KEY=VALUE.")] = None,
+    dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
+    out: Annotated[Path, typer.Option(help="Output directory (re-run to resume).")]
+    = Path("runs/map"),
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+) -> None:
+    """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
+    from icpbench.danger_map import write_maps
+    from icpbench.results import load_results
+    from icpbench.runner import RunConfig
+    from icpbench.runner import run as run_grid
+
+    try:
+        attacks = [attack] + ([compare] if compare else [])
+        cfg = RunConfig(dataset=dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
+                        samples=samples, split=split,
+                        attack_params=_nested(attack_param, "--attack-param"),
+                        dataset_params=_flat(dataset_param, "--dataset-param"))
+        run_grid(cfg, out / "run", progress=not quiet)
+        summary = write_maps(load_results(out / "run"), attack, budget, out, compare)
+        for name in attacks:
+            s = summary[name]
+            typer.echo(f"{name}: {s['locations']} locations, {s['passes']} passes, mean error "
+                       f"{s['mean_trans_err_xy']:.2f} m, AUC open-vs-dense "
+                       f"{s.get('auc_open_vs_dense', float('nan')):.3f}, pass rank correlation "
+                       f"{s['pass_rank_correlation']:.3f}")
+        if compare:
+            c = summary["comparison"]
+            typer.echo(f"{attack} - {compare}: median {c['median']:.2f} m, IQR [{c['q1']:.2f}, "
+                       f"{c['q3']:.2f}] m, {attack} larger at {100 * c['share_ours_larger']:.0f}%")
+        typer.echo(f"written to {out}: " + ", ".join(summary["files"]))
     except (IcpbenchError, ValueError) as exc:
         _fail(exc)
 
@@ -218,8 +299,8 @@ def train(
             typer.echo(f"held-out λ={lam}: mean trans_err_xy {r['trans_err_xy_mean']} m "
                        f"({r['converged']}/{r['samples']} converged), mean max displacement "
                        f"{r['disp_max_mean']:.3f}")
-    except (IcpbenchError, ValueError) as exc:
-        _fail(exc)
+    except Exception as exc:
+        _user_error(exc)
 
 
 def main() -> None:
