@@ -257,6 +257,34 @@ def danger_map(
         _fail(exc)
 
 
+@app.command("object-study")
+def object_study(
+    model: Annotated[list[str], typer.Option(help="NAME=CHECKPOINT, repeatable.")],
+    budget: Annotated[float, typer.Option(help="Budget (normalised units).")] = 0.05,
+    objects: Annotated[int, typer.Option(help="Held-out objects in the table.")] = 24,
+    figure_objects: Annotated[int, typer.Option(help="Objects shown in the figure.")] = 4,
+    out: Annotated[Path, typer.Option(help="Output directory.")] = Path("runs/object-study"),
+) -> None:
+    """Paper figure 4: objects attacked by generators trained with different loss weights."""
+    from icpbench.object_study import figure, study, summary_table
+    from icpbench.report import render
+
+    try:
+        models = dict(_kv(m, "--model") for m in model)
+        rows, clouds, _ = study({k: str(v) for k, v in models.items()}, budget, objects,
+                                figure_objects)
+        out.mkdir(parents=True, exist_ok=True)
+        rows.to_csv(out / "object_study_rows.csv", index=False)
+        table = summary_table(rows)
+        table.to_csv(out / "object_study_table.csv", index=False)
+        (out / "object_study_table.md").write_text(render(table.round(4), "md") + "\n")
+        figure(rows, clouds, out / "object_study.png")
+        typer.echo(render(table.round(4), "md"))
+        typer.echo(f"written to {out}")
+    except (IcpbenchError, ValueError) as exc:
+        _fail(exc)
+
+
 @app.command()
 def train(
     preset: Annotated[str, typer.Option(help="quick-lidar, paper-lidar, quick-objects, paper-objects.")]
