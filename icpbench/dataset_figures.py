@@ -1,0 +1,197 @@
+"""Pictures of a dataset: the route from above, and one scan overlaid on its submap.
+
+``show_dataset("lidar-sim", "results/")`` writes
+
+* ``<name>_route.png``: for ``lidar-sim`` the town from above (a height map of the static meshes
+  in grey, ray-cast straight down) with the route coloured by place / stretch type; for other
+  datasets the sample positions (meta ``x``, ``y``) coloured by stretch or sequence;
+* ``<name>_scan_on_submap.png``: one sample from above, the submap in grey and the scan in colour,
+  at the initial guess ``T_init`` (left) and at the ground truth ``T_gt`` (right).
+
+Matplotlib with the Agg backend; nothing is shown on screen.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from icpbench.datasets import submaps as sm  # noqa: E402
+from icpbench.datasets.base import Dataset  # noqa: E402
+from icpbench.errors import InputError  # noqa: E402
+from icpbench.types import Sample  # noqa: E402
+
+PLACE_COLOURS = {"suburb": "#d62728", "parking": "#ff7f0e", "field": "#bcbd22",
+                 "highway": "#1f77b4", "underpass": "#9467bd"}
+STRETCH_COLOURS = {"dense": "#d62728", "open": "#e6a100", "highway": "#1f77b4",
+                   "underpass": "#9467bd"}
+
+
+def _resolve(dataset: str | Dataset, kwargs: dict[str, Any]) -> Dataset:
+    if isinstance(dataset, Dataset):
+        return dataset
+    if isinstance(dataset, str):
+        from icpbench.registry import datasets
+
+        return datasets.get(dataset)(**kwargs)
+    raise InputError(f"expected a dataset name or a Dataset, got {type(dataset).__name__}")
+
+
+def show_dataset(dataset: str | Dataset, out_dir: str | Path, *, sample_index: int | None = None,
+                 max_route_samples: int = 400, **dataset_kwargs: Any) -> list[Path]:
+    """Write the route picture and the scan-on-submap picture of a dataset; return their paths.
+
+    Args:
+        dataset: a registered dataset name (built with ``dataset_kwargs``) or an instance.
+        out_dir: output folder (created).
+        sample_index: the sample to draw on its submap (default: the first from a dense stretch
+            if the dataset labels stretches, else sample 0).
+        max_route_samples: for datasets without a town, at most this many samples are loaded to
+            draw their positions.
+    """
+    ds = _resolve(dataset, dataset_kwargs)
+    if len(ds) == 0:
+        raise InputError(f"dataset {ds.name!r} has no samples to draw")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    name = (ds.name or type(ds).__name__).replace("/", "_")
+    paths = [out / f"{name}_route.png", out / f"{name}_scan_on_submap.png"]
+    if hasattr(ds, "town") and hasattr(ds, "route"):
+        _town_figure(ds, paths[0])
+    else:
+        _positions_figure(ds, paths[0], max_route_samples)
+    _scan_figure(_pick_sample(ds, sample_index), paths[1])
+    return paths
+
+
+def _pick_sample(ds: Dataset, index: int | None) -> Sample:
+    if index is not None:
+        return ds[index]
+    if hasattr(ds, "_index") and hasattr(ds, "route"):  # lidar-sim: the first dense location
+        for i, (_, f) in enumerate(ds._index):
+            s = f * ds.sample_spacing_m
+            if str(ds.route.place_at(s)) == "suburb":
+                return ds[i]
+    return ds[0]
+
+
+def _height_map(ds: Any, res_m: float) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Height above ground (H, W) of the static town (and the teach pass's parked cars)."""
+    from icpbench.datasets.lidar_model import make_scene
+
+    town = ds.town
+    x0, y0, x1, y1 = town.bounds
+    pad = 150.0
+    x0, y0 = max(x0, town.route.xy[:, 0].min() - pad), max(y0, town.route.xy[:, 1].min() - pad)
+    x1, y1 = min(x1, town.route.xy[:, 0].max() + pad), min(y1, town.route.xy[:, 1].max() + pad)
+    xs, ys = np.arange(x0, x1, res_m), np.arange(y0, y1, res_m)
+    X, Y = np.meshgrid(xs, ys)
+    rays = np.zeros((X.size, 6), dtype=np.float32)
+    rays[:, 0], rays[:, 1], rays[:, 2], rays[:, 5] = X.ravel(), Y.ravel(), 100.0, -1.0
+    import open3d as o3d
+
+    height = np.zeros(X.size)
+    for scene in (make_scene(town.vertices, town.triangles), ds._cars_scene(0)):
+        if scene is None:
+            continue
+        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        height = np.maximum(height, np.where(np.isfinite(t), 100.0 - t, 0.0))
+    raised = height > 0.3  # measure structures from the (rolling) ground, not from z = 0
+    if raised.any():
+        height[raised] -= town.terrain.height(rays[raised, :2])
+    return height.reshape(X.shape), (x0, x1, y0, y1)
+
+
+def _town_figure(ds: Any, path: Path) -> None:
+    route = ds.route
+    span = float(np.ptp(route.xy, axis=0).max())
+    H, extent = _height_map(ds, res_m=max(0.6, span / 2000))
+    fig, ax = plt.subplots(figsize=(11, 9), dpi=150)
+    shade = np.clip(H / 8.0, 0, 1)
+    shade[H < 0.3] = np.nan  # ground, curbs and sidewalks stay white
+    ax.imshow(shade, origin="lower", extent=extent, cmap="Greys", vmin=-0.3, vmax=1.0,
+              interpolation="nearest")
+    s = np.arange(0.0, route.length, 1.0)
+    xy, _ = route.pose(s)
+    seen = set()
+    for a, b, place in route.intervals():
+        m = (s >= a) & (s <= b)
+        label = None if place in seen else f"{place} ({_stretch(place)})"
+        seen.add(place)
+        ax.plot(xy[m, 0], xy[m, 1], color=PLACE_COLOURS[place], lw=3.0, label=label,
+                solid_capstyle="butt")
+    start, h0 = route.pose(0.0)
+    ax.annotate("", xy=start + 60 * np.array([np.cos(h0), np.sin(h0)]), xytext=start,
+                arrowprops={"arrowstyle": "->", "lw": 2, "color": "k"})
+    ax.plot(*start, "ko", ms=6)
+    ax.text(start[0] - 12, start[1], "start", ha="right", va="center", fontsize=9)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"lidar-sim town (seed {ds.seed}): {route.length / 1000:.2f} km loop, "
+                 f"{ds.n_vertices} locations per pass; grey = structures (darker = taller)")
+    ax.legend(loc="best", fontsize=9, title="place (stretch)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _stretch(place: str) -> str:
+    from icpbench.datasets.town import PLACES
+
+    return PLACES.get(place, place)
+
+
+def _positions_figure(ds: Dataset, path: Path, max_samples: int) -> None:
+    step = max(1, len(ds) // max_samples)
+    samples = [ds[i] for i in range(0, len(ds), step)]
+    xs = np.array([float(s.meta.get("x", np.nan)) for s in samples])
+    ys = np.array([float(s.meta.get("y", np.nan)) for s in samples])
+    if not np.isfinite(xs).any():
+        raise InputError(f"dataset {ds.name!r} has no x/y positions in its sample metadata")
+    key = "stretch" if all("stretch" in s.meta for s in samples) else "pass"
+    groups = [str(s.meta.get(key, "")) for s in samples]
+    fig, ax = plt.subplots(figsize=(9, 8), dpi=150)
+    cmap = plt.get_cmap("tab10")
+    for k, g in enumerate(sorted(set(groups))):
+        m = np.array([x == g for x in groups])
+        ax.scatter(xs[m], ys[m], s=8, color=STRETCH_COLOURS.get(g, cmap(k % 10)), label=g or "samples")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"{ds.name}: positions of {len(samples)} of {len(ds)} samples")
+    ax.legend(fontsize=8, title=key)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _scan_figure(sample: Sample, path: Path, radius_m: float = 45.0) -> None:
+    Q = np.asarray(sample.map, dtype=np.float64)
+    fig, axes = plt.subplots(1, 2, figsize=(14, 7), dpi=150, sharex=True, sharey=True)
+    for ax, T, title in ((axes[0], sample.T_init, "initial guess (T_init)"),
+                         (axes[1], sample.T_gt, "ground truth (T_gt)")):
+        P = sm.transform(T, sample.scan)
+        ax.scatter(Q[:, 0], Q[:, 1], s=0.15, c="0.6", lw=0, label=f"submap ({len(Q)} pts)")
+        ax.scatter(P[:, 0], P[:, 1], s=0.6, c="#d62728", lw=0, label=f"scan ({len(P)} pts)")
+        ax.plot(0, 0, "k^", ms=7)
+        ax.annotate("", xy=(5, 0), xytext=(0, 0), arrowprops={"arrowstyle": "->", "lw": 1.5})
+        ax.set_title(title)
+        ax.set_aspect("equal")
+        ax.set_xlim(-radius_m, radius_m)
+        ax.set_ylim(-radius_m, radius_m)
+        ax.set_xlabel("x, longitudinal (m)")
+        ax.legend(loc="upper right", fontsize=8, markerscale=12)
+    axes[0].set_ylabel("y, lateral (m)")
+    meta = sample.meta
+    extra = ", ".join(f"{k}={meta[k]}" for k in ("stretch", "place", "pass", "frame") if k in meta)
+    fig.suptitle(f"{sample.id}: scan on its submap, vehicle frame ({extra})")
+    fig.tight_layout(rect=(0, 0, 1, 0.96))
+    fig.savefig(path)
+    plt.close(fig)
