@@ -126,6 +126,10 @@ class Attack(ABC):
                 f"attack {self.name!r} returned shape {tuple(adv.shape)}, "
                 f"expected {tuple(batch.scans.shape)}"
             )
+        if not bool(torch.isfinite(adv).all()):
+            bad = int((~torch.isfinite(adv)).any(-1).sum())
+            raise RuntimeError(f"attack {self.name!r} returned {bad} point(s) with NaN or Inf "
+                               "coordinates")
         clean = batch.scans.to(adv.dtype)
         stats = displacement_stats(clean, adv, budget_m)
         stats["disp_max_raw"] = stats["disp_max"].clone()

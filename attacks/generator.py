@@ -76,6 +76,8 @@ class GeneratorAttack(Attack):
                          **params)
         self.checkpoint, self.dataset, self.device = checkpoint, dataset, device
         self._loaded: dict[Path, Any] = {}
+        if checkpoint is not None:  # a missing or corrupt file is a user error: fail before the run
+            self._model(0.0)
 
     def _model(self, budget_m: float):
         from icpbench.generator.checkpoint import load_checkpoint

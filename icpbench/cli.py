@@ -210,6 +210,24 @@ def table(
         _user_error(exc)
 
 
+@app.command("show-dataset")
+def show_dataset(
+    name: Annotated[str, typer.Argument(help="Dataset name, e.g. lidar-sim.")] = "lidar-sim",
+    out: Annotated[Path, typer.Option(help="Output directory for the PNGs.")] = Path("results"),
+    sample: Annotated[int | None, typer.Option(help="Sample index of the scan overlay.")] = None,
+    dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
+) -> None:
+    """Write a top view of the dataset (route by stretch type) and a scan overlaid on its map."""
+    from icpbench.dataset_figures import show_dataset as show
+
+    try:
+        paths = show(name, out, sample_index=sample, **_flat(dataset_param, "--dataset-param"))
+        for p in paths:
+            typer.echo(str(p))
+    except (IcpbenchError, ValueError) as exc:
+        _fail(exc)
+
+
 @app.command("map")
 def danger_map(
     attack: Annotated[str, typer.Option(help="Attack that estimates the worst case.")]

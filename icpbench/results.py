@@ -133,9 +133,17 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
         p = p / RESULTS_FILE
     if not p.exists():
         raise InputError(f"no results at {p}; run `icpbench run --out {p.parent}` first")
-    df = pd.read_csv(p, keep_default_na=False, na_values=[""])
+    try:
+        df = pd.read_csv(p, keep_default_na=False, na_values=[""])
+    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p} is empty or not a results CSV written by `icpbench run` "
+                         f"({type(exc).__name__}: {str(exc).strip().splitlines()[0]})") from exc
     if df.empty:
         raise InputError(f"{p} holds no result rows")
+    missing = [c for c in KEY_COLUMNS + ("converged", "strict", "meta", "extra") if c not in df]
+    if missing:
+        raise InputError(f"{p} is not a results CSV written by `icpbench run` (no column "
+                         f"{missing[0]!r})")
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
     df["strict"] = df["strict"].astype(str).str.lower().isin(["true", "1"])
     if expand:

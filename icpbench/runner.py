@@ -6,6 +6,10 @@ unit of work (one seed, one batch of samples, one budget, one attack) is attacke
 registered by every target; its rows are appended to the results store as soon as it finishes, so
 an interrupted run resumes where it stopped. A plugin that raises inside a unit produces rows with
 ``status = "error"`` and the message, and the run goes on.
+
+Where units are computed is the executor's business (:mod:`icpbench.executors`: ``local`` in this
+process, ``ray`` on a Ray cluster); every executor yields the rows in grid order and only this
+process writes them, so the results file is the same whatever the executor.
 """
 
 from __future__ import annotations
@@ -15,8 +19,9 @@ import platform
 import subprocess
 import time
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -27,6 +32,7 @@ import torch
 from icpbench import registry
 from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput, validate_budget
 from icpbench.errors import InputError
+from icpbench.executors import WorkItem, check_executor, get_executor
 from icpbench.progress import progress_bar
 from icpbench.results import (
     MANIFEST_FILE,
@@ -59,6 +65,8 @@ class RunConfig:
         strict: project every attack's per-point displacement onto its budget ball.
         threads: torch intra-op threads (1 is fastest for these tensor sizes on small CPUs).
         attack_params, target_params: per-plugin constructor kwargs.
+        executor: where units of work run (``local`` or ``ray``); results do not depend on it, so
+            a run may be resumed with another executor.
     """
 
     dataset: str = "objects"
@@ -77,6 +85,7 @@ class RunConfig:
     threads: int = 1
     attack_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     target_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    executor: str = "local"
 
     def validate(self) -> RunConfig:
         """Check names, budgets and sizes; raise InputError listing valid choices."""
@@ -92,7 +101,19 @@ class RunConfig:
             raise InputError(f"batch size must be >= 1, got {self.batch_size}")
         if not self.seeds:
             raise InputError("at least one seed is needed")
+        check_executor(self.executor)
         return self
+
+
+#: RunConfig fields that choose how a run is executed, not what it computes (ignored when a resumed
+#: run's configuration is compared with the stored one).
+EXECUTION_FIELDS = ("executor",)
+
+
+def _same_config(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    def strip(c: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in c.items() if k not in EXECUTION_FIELDS}
+    return strip(a) == strip(b)
 
 
 def _stable_seed(*parts: Any) -> int:
@@ -149,6 +170,42 @@ def _rows_for_unit(samples: Sequence[Sample], attack: str, target: str, budget: 
              "meta": dict(s.meta)} for s in samples]
 
 
+class GridWorker:
+    """Everything one process needs to compute units of work: the dataset, the targets, the
+    surrogate, the attacks and the per-map caches, all built from a :class:`RunConfig`.
+
+    The runner builds one in the driver (it also describes the run in the manifest); executors that
+    compute elsewhere rebuild equivalent workers from :meth:`factory`.
+    """
+
+    def __init__(self, cfg: RunConfig) -> None:
+        self.cfg = cfg
+        torch.set_num_threads(cfg.threads)
+        self.dataset = load_dataset(cfg)
+        self.preset = cfg.icp_preset or self.dataset.icp_preset
+        self.targets = {n: build_target(n, self.preset, cfg.target_params.get(n))
+                        for n in cfg.targets}
+        self.surrogate = (self.targets.get(cfg.surrogate) or
+                          build_target(cfg.surrogate, self.preset,
+                                       cfg.target_params.get(cfg.surrogate)))
+        self.attacks = {n: build_attack(n, cfg.strict, {**_attack_context(n, cfg, self.dataset),
+                                                        **cfg.attack_params.get(n, {})})
+                        for n in cfg.attacks}
+        self.prepared: dict[str, dict[str, Any]] = {t: {} for t in self.targets}
+
+    def factory(self) -> Callable[[], GridWorker]:
+        """A picklable callable that builds an equivalent worker (in another process or node)."""
+        return partial(GridWorker, self.cfg)
+
+    def run(self, item: WorkItem) -> Iterator[list[dict[str, Any]]]:
+        """Attack and register one batch for each of ``item.units``; yield each unit's rows."""
+        batch = Batch.from_samples([self.dataset[i].validate() for i in range(item.start, item.stop)])
+        none_cache: dict[str, tuple] = {}
+        for budget, aname in item.units:
+            yield _run_unit(batch, self.attacks[aname], self.targets, self.surrogate, self.prepared,
+                            budget, item.seed, self.cfg, none_cache)
+
+
 def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         on_unit: Callable[[int], None] | None = None) -> ResultsStore:
     """Run (or resume) the grid of ``cfg`` into ``out_dir``; return the results store.
@@ -159,8 +216,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
     cfg.validate()
     torch.set_num_threads(cfg.threads)
     out_dir = Path(out_dir)
-    dataset = load_dataset(cfg)
-    preset = cfg.icp_preset or dataset.icp_preset
+    worker = GridWorker(cfg)
+    dataset, preset = worker.dataset, worker.preset
     manifest = {
         "config": asdict(cfg),
         "icp_preset": preset,
@@ -172,22 +229,16 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                      "processor": platform.processor(), "cpu_count": _cpu_count()},
     }
     old = read_manifest(out_dir)
-    if old is not None and old.get("config") != manifest["config"]:
+    if old is not None and not _same_config(old.get("config", {}), manifest["config"]):
         raise InputError(
             f"{out_dir} holds results of a different configuration; use a new --out "
             "(or the same command to resume)"
         )
     out_dir.mkdir(parents=True, exist_ok=True)
     store = ResultsStore(out_dir)
-    targets = {n: build_target(n, preset, cfg.target_params.get(n)) for n in cfg.targets}
-    surrogate = (targets.get(cfg.surrogate) or
-                 build_target(cfg.surrogate, preset, cfg.target_params.get(cfg.surrogate)))
-    attacks = {n: build_attack(n, cfg.strict, {**_attack_context(n, cfg, dataset),
-                                                **cfg.attack_params.get(n, {})})
-               for n in cfg.attacks}
-    manifest["targets"] = {n: t.settings() for n, t in targets.items()}
-    manifest["surrogate_settings"] = surrogate.settings()
-    manifest["attacks"] = {n: a.settings() for n, a in attacks.items()}
+    manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
+    manifest["surrogate_settings"] = worker.surrogate.settings()
+    manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
     manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
     write_json_atomic(out_dir / MANIFEST_FILE, manifest)
 
@@ -197,32 +248,28 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
     starts = list(range(0, n, cfg.batch_size))
     total = len(cfg.seeds) * len(starts) * len(cfg.budgets) * len(cfg.attacks)
     bar = progress_bar(total=total, desc="icpbench run", unit="cell", disable=not progress)
-    prepared: dict[str, dict[str, Any]] = {t: {} for t in targets}
-    done_units = 0
+    items: list[WorkItem] = []
     for seed in cfg.seeds:
         for start in starts:
-            batch: Batch | None = None
-            none_cache: dict[str, tuple] = {}
-            for budget in cfg.budgets:
-                for aname, attack in attacks.items():
-                    ids = _ids(dataset, start, n, cfg.batch_size)
-                    if all(store.has((sid, aname, t, float(budget), int(seed)))
-                           for sid in ids for t in targets):
-                        bar.update(1)
-                        continue
-                    if batch is None:
-                        stop = min(start + cfg.batch_size, n)
-                        batch = Batch.from_samples([dataset[i].validate()
-                                                    for i in range(start, stop)])
-                    rows = _run_unit(batch, attack, targets, surrogate, prepared, budget, seed,
-                                     cfg, none_cache)
-                    store.append(rows)
-                    bar.update(1)
-                    done_units += 1
-                    if on_unit is not None:
-                        on_unit(done_units)
+            ids = _ids(dataset, start, n, cfg.batch_size)
+            units = tuple((budget, aname) for budget in cfg.budgets for aname in worker.attacks
+                          if not all(store.has((sid, aname, t, float(budget), int(seed)))
+                                     for sid in ids for t in worker.targets))
+            if units:
+                items.append(WorkItem(seed=seed, start=start,
+                                      stop=min(start + cfg.batch_size, n), units=units))
+    bar.update(total - sum(len(it.units) for it in items))  # units already in the store
+    executor = get_executor(cfg.executor, threads=cfg.threads)
+    done_units = 0
+    for _item, _k, rows in executor.map(worker, items):
+        store.append(rows)
+        bar.update(1)
+        done_units += 1
+        if on_unit is not None:
+            on_unit(done_units)
     bar.close()
     manifest["completed_rows"] = len(store)
+    manifest["execution"] = executor.describe()
     write_json_atomic(out_dir / MANIFEST_FILE, manifest)
     return store
 

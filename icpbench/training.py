@@ -10,6 +10,10 @@ computed once per training scan, outside autograd.
 One epoch = one pass over ``train_samples`` samples. A checkpoint (weights + JSON) and the
 optimiser/scheduler state are written after every epoch; calling :func:`train` again with the
 same output directory resumes after the last finished epoch.
+
+Several GPUs (or CPU processes): launch the same command with ``torchrun``; each process trains on
+its shard of the training subset and DistributedDataParallel averages the gradients (see
+:mod:`icpbench.distributed`). Without torchrun the loop is the single-process one.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from icpbench import distributed as ddp
 from icpbench import registry
 from icpbench.errors import InputError
 from icpbench.losses import adversarial_loss, reconstruction_loss, weights
@@ -102,12 +107,14 @@ def train_config(preset: str = "quick-lidar", **overrides: Any) -> TrainConfig:
     return replace(PRESETS[preset], **overrides)
 
 
-def _load_split(cfg: TrainConfig, split: str, k: int):
+def _load_split(cfg: TrainConfig, split: str, k: int, ctx: ddp.DistContext | None = None):
     cls = registry.datasets.get(cfg.dataset)
     ds = cls(seed=0, split=split, **cfg.dataset_params)
     if len(ds) == 0:
         raise InputError(f"dataset {cfg.dataset!r} has no {split!r} samples")
-    return ds.take(k)
+    if ctx is None or not ctx.enabled:
+        return ds.take(k)
+    return [ds[i] for i in ddp.shard_indices(min(int(k), len(ds)), ctx)]  # this rank's shard
 
 
 def _budgets(cfg: TrainConfig) -> torch.Tensor:
@@ -124,50 +131,62 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
     Files: ``generator.pt`` + ``generator.json`` (the checkpoint, with the model card),
     ``train_state.pt`` (optimiser, scheduler, epoch), ``train_config.json``, ``history.csv``.
     """
+    torch.set_num_threads(cfg.threads)
+    ctx, device = ddp.setup(cfg.device)  # torchrun: process group + this rank's device
+    try:
+        return _train(cfg, Path(out_dir), ctx, device, progress=progress and ctx.is_main,
+                      log=log if ctx.is_main else None)
+    finally:
+        ddp.cleanup(ctx)
+
+
+def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, progress: bool,
+           log: Callable[[str], None] | None) -> dict[str, Any]:
     from icpbench.generator.checkpoint import load_checkpoint, save_checkpoint
     from icpbench.generator.network import Generator, generator_config
 
-    torch.set_num_threads(cfg.threads)
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "train_config.json"
     if cfg_path.exists() and json.loads(cfg_path.read_text()) != asdict(cfg):
         raise InputError(f"{out} holds a training run with another configuration; use a new --out")
-    write_json_atomic(cfg_path, asdict(cfg))
+    if ctx.is_main:
+        write_json_atomic(cfg_path, asdict(cfg))
     w = weights(cfg.weights)
     budgets = _budgets(cfg)
     conditioned = budgets.numel() > 1
     gcfg = generator_config(cfg.generator_preset, conditioned=conditioned,
                             **cfg.generator_overrides)
     torch.manual_seed(cfg.seed)
-    model = Generator(gcfg).to(cfg.device)
+    model = Generator(gcfg).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
     state_path, ckpt = out / "train_state.pt", out / "generator.pt"
     start_epoch, wall_before = 0, 0.0
     if state_path.exists() and ckpt.exists():
-        model = load_checkpoint(ckpt, map_location=cfg.device).model.train()
+        model = load_checkpoint(ckpt, map_location=device).model.train()
         opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
         sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs,
                                                 gamma=cfg.lr_gamma)
-        st = torch.load(state_path, weights_only=True)
+        st = torch.load(state_path, weights_only=True, map_location="cpu")
         opt.load_state_dict(st["optimizer"])
         sched.load_state_dict(st["scheduler"])
         start_epoch, wall_before = int(st["epoch"]), float(st["wall_s"])
     total_epochs = cfg.pretrain_epochs + cfg.epochs
+    net = ddp.wrap_model(model, ctx, device)  # DDP averages gradients over ranks in backward()
 
     t_data = time.perf_counter()
-    train_set = _load_split(cfg, "train", cfg.train_samples)
+    train_set = _load_split(cfg, "train", cfg.train_samples, ctx)
     geos = [model.precompute(torch.as_tensor(s.scan[None], dtype=torch.float32))
             for s in train_set]
     data_s = time.perf_counter() - t_data
+    n_train = len({i for ids in ddp.all_gather([s.id for s in train_set], ctx) for i in ids})
     surrogate = PointToPlaneICP(cfg.icp_preset, soft_dmax=cfg.soft_dmax)
     rng = np.random.default_rng(cfg.seed)
     for _ in range(start_epoch):  # keep the shuffling stream aligned on resume
         rng.permutation(len(train_set))
         rng.random(len(train_set))
     history_path = out / "history.csv"
-    if not history_path.exists():
+    if ctx.is_main and not history_path.exists():
         history_path.write_text("epoch,phase,loss,l_adv,l_rec,trans_err_xy,lr,wall_s\n")
     t0 = time.perf_counter()
     from icpbench.generator.geometry import Geometry
@@ -185,11 +204,11 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
         for s in steps:
             idx = order[s:s + cfg.batch_size]
             batch = Batch.from_samples([train_set[i] for i in idx])
-            x = batch.scans.to(torch.float32).to(cfg.device)
-            geo = Geometry.stack([geos[i] for i in idx]).to(cfg.device)
+            x = batch.scans.to(torch.float32).to(device)
+            geo = Geometry.stack([geos[i] for i in idx]).to(device)
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
-            x_adv = model(x, geo, lam.to(torch.float32).to(cfg.device) if conditioned else None)
-            l_rec = reconstruction_loss(x.double(), x_adv.double(), lam.to(cfg.device)).mean()
+            x_adv = net(x, geo, lam.to(torch.float32).to(device) if conditioned else None)
+            l_rec = reconstruction_loss(x.double(), x_adv.double(), lam.to(device)).mean()
             if alpha > 0:
                 reg = surrogate.register(x_adv.double().cpu(), batch.maps, batch.T_init)
                 xi = pose_error(reg.T, batch.T_gt)
@@ -214,24 +233,36 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
         bar.close()
         sched.step()
         wall = wall_before + time.perf_counter() - t0
+        sums = ddp.all_reduce_sums(sums, ctx)  # epoch statistics over every rank's steps
         n = max(sums["n"], 1)
+        if not ctx.is_main:  # rank 0 writes the files; the others wait for them
+            ddp.barrier(ctx)
+            if ddp.broadcast(None, ctx):
+                break
+            continue
         with open(history_path, "a") as f:
             f.write(f"{epoch + 1},{'pretrain' if pretrain else 'attack'},{sums['loss'] / n:.6g},"
                     f"{sums['l_adv'] / n:.6g},{sums['l_rec'] / n:.6g},"
                     f"{(sums['err'] / n) if not pretrain else float('nan'):.6g},"
                     f"{opt.param_groups[0]['lr']:.3g},{wall:.1f}\n")
-        card = _card(cfg, epoch + 1, wall, data_s, len(train_set))
+        card = _card(cfg, epoch + 1, wall, data_s, n_train)
+        if ctx.enabled:
+            card["distributed"] = ddp.describe(ctx, cfg.batch_size)
         save_checkpoint(model, ckpt, card)
         torch.save({"optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                     "epoch": epoch + 1, "wall_s": wall}, state_path)
         if log is not None:
             log(f"epoch {epoch + 1}: loss {sums['loss'] / n:.4f} err_xy "
                 f"{sums['err'] / n:.3f} m ({wall / 60:.1f} min)")
-        if cfg.max_minutes is not None and wall > 60 * cfg.max_minutes:
+        stop = cfg.max_minutes is not None and wall > 60 * cfg.max_minutes
+        ddp.barrier(ctx)
+        if ddp.broadcast(stop, ctx):
             break
-    card = evaluate(cfg, ckpt, progress=progress)
-    save_checkpoint(load_checkpoint(ckpt).model, ckpt, card)
-    return card
+    card = evaluate(cfg, ckpt, progress=progress) if ctx.is_main else None
+    if ctx.is_main:
+        save_checkpoint(load_checkpoint(ckpt).model, ckpt, card)
+    ddp.barrier(ctx)
+    return ddp.broadcast(card, ctx)
 
 
 def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,

@@ -41,8 +41,13 @@ class Sample:
 
     def validate(self) -> Sample:
         """Check shapes, finiteness and normals; raise :class:`InputError` naming the problem."""
-        validate_cloud(self.scan, "scan", min_points=6)
-        validate_cloud(self.map, "map", min_points=6)
+        validate_cloud(self.scan, f"sample {self.id!r}: scan", min_points=6)
+        validate_cloud(self.map, f"sample {self.id!r}: map", min_points=6)
+        if self.map_normals is None:
+            raise InputError(
+                f"sample {self.id!r}: map has no normals; estimate them, e.g. "
+                "icpbench.datasets.submaps.estimate_normals(map)"
+            )
         n = np.asarray(self.map_normals)
         if n.shape != np.asarray(self.map).shape:
             raise InputError(
@@ -53,7 +58,7 @@ class Sample:
         if not np.all(np.isfinite(norms)) or np.mean(np.abs(norms - 1.0) < 1e-3) < 0.5:
             raise InputError(
                 f"sample {self.id!r}: map has no usable normals (expected unit vectors); "
-                "estimate them, e.g. icpbench.geometry.estimate_normals(map)"
+                "estimate them, e.g. icpbench.datasets.submaps.estimate_normals(map)"
             )
         for name in ("T_gt", "T_init"):
             T = np.asarray(getattr(self, name))
@@ -85,6 +90,16 @@ def validate_cloud(points: Any, name: str, *, min_points: int = 6) -> np.ndarray
     if not np.all(np.isfinite(arr)):
         bad = int((~np.isfinite(arr)).any(axis=1).sum())
         raise InputError(f"{name} has {bad} point(s) with NaN or Inf coordinates")
+    # Duplicates are fine, but fewer than min_points *distinct* points cannot constrain a pose.
+    # The first 1,000 points usually settle it; only a mostly duplicated cloud pays the full count.
+    if len(np.unique(arr[:1000], axis=0)) < min_points:
+        distinct = len(np.unique(arr, axis=0))
+        if distinct < min_points:
+            raise InputError(
+                f"{name} has only {distinct} distinct point(s) among {arr.shape[0]} (the rest are "
+                f"duplicates); at least {min_points} distinct points are needed to constrain a "
+                "6-DoF pose"
+            )
     return arr
 
 

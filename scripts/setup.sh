@@ -17,5 +17,5 @@ if ! $PY -c "import torch" 2>/dev/null; then
   $PY -m pip install -q torch==2.13.0
 fi
 
-# icpbench itself (editable), the test tools and the optional GICP target.
-$PY -m pip install -q -e ".[test,gicp]"
+# icpbench itself (editable), the test tools, the optional GICP target and the Ray executor.
+$PY -m pip install -q -e ".[test,gicp,ray]"

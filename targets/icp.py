@@ -96,6 +96,10 @@ def icp_config(preset: str | ICPConfig | None = "lidar", **overrides: Any) -> IC
         if preset not in PRESETS:
             raise InputError(f"unknown ICP preset {preset!r}; valid: {', '.join(PRESETS)}")
         base = PRESETS[preset]
+    unknown = sorted(set(overrides) - set(ICPConfig.__dataclass_fields__))
+    if unknown:
+        raise InputError(f"unknown ICP setting(s) {', '.join(map(repr, unknown))}; valid: "
+                         f"{', '.join(ICPConfig.__dataclass_fields__)}")
     return base.with_(**overrides) if overrides else base
 
 

@@ -1,0 +1,304 @@
+"""Executors: where the runner's units of work are computed.
+
+The runner cuts the evaluation grid into *work items*: one batch of samples under one attack seed,
+with the (budget, attack) units of that batch that the results store still lacks, in grid order.
+A *worker* (:class:`icpbench.runner.GridWorker`, built from the run's configuration: dataset,
+targets, surrogate, attacks and their caches) turns a work item into one list of result rows per
+unit. An executor decides only where workers live; every row is computed by the same code from the
+same seeds, and the driver appends rows to the results store itself, in item order, so the results
+file does not depend on the executor (wall-time columns aside):
+
+* ``local`` (default, no dependency): one worker in this process; items one after another.
+* ``ray``: a pool of Ray actors (Moritz et al., "Ray: A Distributed Framework for Emerging AI
+  Applications", OSDI 2018), each holding its own worker, on the Ray cluster this process connects to
+  (``RAY_ADDRESS``, else a running local cluster, else a new one on this machine). Work items are
+  handed to idle actors; finished items come back to the driver, which writes them in the order of
+  the grid. Workers never touch the results directory, so the cluster needs no shared filesystem;
+  it does need icpbench (same version) and any data folders or checkpoints named in the
+  configuration on every node. Ray is imported only when this executor is used
+  (``pip install 'icpbench[ray]'``).
+
+A killed driver loses at most the items in flight (they are recomputed on resume); an item that a
+plugin crashes inside is already turned into error rows by the worker.
+"""
+
+from __future__ import annotations
+
+import os
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
+
+from icpbench.errors import IcpbenchError, InputError, PluginUnavailableError
+
+Row = dict[str, Any]
+
+#: Executors by name (``icpbench run --executor NAME``).
+EXECUTORS: tuple[str, ...] = ("local", "ray")
+
+
+@dataclass(frozen=True)
+class WorkItem:
+    """One batch of one seed and the units still to compute for it.
+
+    Attributes:
+        seed: attack seed.
+        start, stop: sample indices ``[start, stop)`` of the batch in the dataset split.
+        units: ``(budget, attack name)`` pairs, in grid order (budgets outer, attacks inner).
+    """
+
+    seed: int
+    start: int
+    stop: int
+    units: tuple[tuple[float, str], ...]
+
+
+class Worker(Protocol):
+    """What an executor needs from a worker."""
+
+    def run(self, item: WorkItem) -> Iterator[list[Row]]:
+        """Compute ``item``; yield the rows of each unit, in the order of ``item.units``."""
+        ...
+
+    def factory(self) -> Callable[[], Worker]:
+        """A picklable zero-argument callable that builds an equivalent worker elsewhere."""
+        ...
+
+
+class Executor(ABC):
+    """Computes work items and yields their rows in a fixed order."""
+
+    name: ClassVar[str] = ""
+
+    @abstractmethod
+    def map(self, worker: Worker, items: Sequence[WorkItem]) -> Iterator[tuple[WorkItem, int, list[Row]]]:
+        """Yield ``(item, unit index, rows)`` for every unit of every item, in the order of
+        ``items`` and of each item's units, whatever order they were computed in.
+
+        Args:
+            worker: a worker built in this process (the local executor uses it; others rebuild
+                equivalent workers from ``worker.factory()``).
+            items: the work, in grid order.
+        """
+
+    def describe(self) -> dict[str, Any]:
+        """Recorded in the results manifest."""
+        return {"executor": self.name}
+
+
+class LocalExecutor(Executor):
+    """Today's sequential loop: one worker, in this process."""
+
+    name: ClassVar[str] = "local"
+
+    def map(self, worker: Worker, items: Sequence[WorkItem]) -> Iterator[tuple[WorkItem, int, list[Row]]]:
+        for item in items:
+            for k, rows in enumerate(worker.run(item)):
+                yield item, k, rows
+
+
+class RayExecutor(Executor):
+    """Work items on a pool of Ray actors; rows come back to the driver in grid order.
+
+    Args:
+        address: Ray cluster address (``"auto"``, ``"ray://head:10001"``, ...). ``None`` follows
+            Ray's own rule: ``RAY_ADDRESS`` if set, else a cluster started on this machine with
+            ``ray start``, else a new local one (shut down again when the run ends).
+        num_workers: actors in the pool; default: the cluster's CPUs divided by ``cpus_per_worker``,
+            at most one per work item.
+        cpus_per_worker: CPUs Ray reserves for each actor (set it to the run's torch threads).
+        max_restarts: times Ray restarts an actor whose process died (the item is then retried; a
+            unit is pure, so a retry gives the same rows).
+    """
+
+    name: ClassVar[str] = "ray"
+
+    def __init__(self, address: str | None = None, *, num_workers: int | None = None,
+                 cpus_per_worker: float = 1.0, max_restarts: int = 1) -> None:
+        self.ray = import_ray()
+        if num_workers is not None and num_workers < 1:
+            raise InputError(f"num_workers must be >= 1, got {num_workers}")
+        if not cpus_per_worker > 0:
+            raise InputError(f"cpus_per_worker must be > 0, got {cpus_per_worker}")
+        self.address = address
+        self.num_workers = num_workers
+        self.cpus_per_worker = float(cpus_per_worker)
+        self.max_restarts = int(max_restarts)
+        self._used_workers = 0
+        self._cluster: dict[str, Any] = {}
+
+    def describe(self) -> dict[str, Any]:
+        return {"executor": self.name, "workers": self._used_workers,
+                "cpus_per_worker": self.cpus_per_worker, "cluster": self._cluster}
+
+    def map(self, worker: Worker, items: Sequence[WorkItem]) -> Iterator[tuple[WorkItem, int, list[Row]]]:
+        if not items:
+            return
+        ray = self.ray
+        owns = not ray.is_initialized()
+        if owns:
+            ray.init(address=self.address, include_dashboard=False, logging_level="WARNING",
+                     log_to_driver=False)
+        actors: list[Any] = []
+        try:
+            resources = ray.cluster_resources()
+            self._cluster = {"cpus": resources.get("CPU", 0.0), "nodes": len(ray.nodes())}
+            n = self.num_workers or max(1, int(resources.get("CPU", 1.0) // self.cpus_per_worker))
+            n = min(n, len(items))
+            self._used_workers = n
+            actor_cls = _actor_class(ray).options(num_cpus=self.cpus_per_worker,
+                                                  max_restarts=self.max_restarts,
+                                                  max_task_retries=self.max_restarts)
+            factory = worker.factory()
+            actors += [actor_cls.remote(factory) for _ in range(n)]
+            self._check_started(actors)
+            yield from self._ordered(actors, items)
+        finally:
+            for actor in actors:  # free the cluster's CPUs now, not when the handles are collected
+                ray.kill(actor)
+            if owns:
+                ray.shutdown()
+
+    def _ordered(self, actors: list[Any], items: Sequence[WorkItem]
+                 ) -> Iterator[tuple[WorkItem, int, list[Row]]]:
+        """Keep every actor busy; yield results strictly in item order. An item that failed raises
+        its error when its turn comes, so the rows written before it are those the local executor
+        would have written."""
+        ray = self.ray
+        free = list(actors)
+        pending: dict[Any, tuple[int, Any]] = {}  # ref -> (item index, actor)
+        done: dict[int, list[list[Row]] | Exception] = {}
+        next_submit, next_yield = 0, 0
+        while next_yield < len(items):
+            while free and next_submit < len(items):
+                actor = free.pop()
+                pending[actor.run.remote(items[next_submit])] = (next_submit, actor)
+                next_submit += 1
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                i, actor = pending.pop(ref)
+                try:
+                    done[i] = self._get(ref)
+                except IcpbenchError as exc:  # raised in turn, after every earlier item's rows
+                    done[i] = exc
+                free.append(actor)
+            while next_yield in done:
+                result = done.pop(next_yield)
+                if isinstance(result, Exception):
+                    raise result
+                for k, rows in enumerate(result):
+                    yield items[next_yield], k, rows
+                next_yield += 1
+
+    def _check_started(self, actors: list[Any]) -> None:
+        """Raise the error of an actor that could not build its worker (bad data path on that
+        node, a plugin that the workers cannot import, ...)."""
+        for err in self.ray.get([a.ready.remote() for a in actors]):
+            if err is None:
+                continue
+            hint = ("; plugins registered at run time (registry.register) are unknown to Ray "
+                    "workers: install them as a package or name their modules in ICPBENCH_PLUGINS"
+                    if "unknown" in str(err) else "")
+            msg = f"a Ray worker could not set up the run: {err}{hint}"
+            if isinstance(err, IcpbenchError):
+                try:
+                    raise type(err)(msg) from err
+                except TypeError:  # an error type with another constructor
+                    raise IcpbenchError(msg) from err
+            raise IcpbenchError(f"{msg} ({type(err).__name__})") from err
+
+    def _get(self, ref: Any) -> list[list[Row]]:
+        """``ray.get`` that re-raises icpbench's own errors (bad data, checkpoints) unwrapped."""
+        ray = self.ray
+        try:
+            return ray.get(ref)
+        except ray.exceptions.RayTaskError as exc:
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, IcpbenchError):
+                raise cause from None
+            raise IcpbenchError(f"a Ray worker failed: {_first_line(exc)}; re-run the same "
+                                "command to resume") from exc
+        except ray.exceptions.RayError as exc:  # actor died (node lost, out of memory, ...)
+            raise IcpbenchError(f"a Ray worker was lost ({type(exc).__name__}: {_first_line(exc)}); "
+                                "re-run the same command to resume") from exc
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[-1] if text else type(exc).__name__
+
+
+_ACTOR: Any = None
+
+
+def _actor_class(ray: Any) -> Any:
+    """The Ray actor class (defined lazily so that importing this module never imports Ray)."""
+    global _ACTOR
+    if _ACTOR is None:
+
+        class GridActor:
+            """Holds one worker (dataset, targets, attacks, caches) for the life of the run.
+
+            A failure to build the worker is kept and reported by :meth:`ready` (an exception in
+            an actor's constructor would make Ray restart the actor and retry for nothing)."""
+
+            def __init__(self, factory: Callable[[], Worker]) -> None:
+                self.worker: Worker | None = None
+                self.error: Exception | None = None
+                try:
+                    self.worker = factory()
+                except Exception as exc:
+                    self.error = exc
+
+            def ready(self) -> Exception | None:
+                return self.error
+
+            def run(self, item: WorkItem) -> list[list[Row]]:
+                assert self.worker is not None, "run() on an actor whose worker failed to build"
+                return list(self.worker.run(item))
+
+        _ACTOR = ray.remote(GridActor)
+    return _ACTOR
+
+
+def import_ray() -> Any:
+    """Import Ray, or raise :class:`PluginUnavailableError` saying how to install it."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise PluginUnavailableError(
+            "the ray executor needs Ray: pip install 'icpbench[ray]' (or pip install 'ray>=2.9'); "
+            "or use --executor local"
+        ) from exc
+    return ray
+
+
+def check_executor(name: str) -> str:
+    """Validate an executor name (and that its library imports); return it.
+
+    Raises:
+        InputError: unknown name (the message lists the valid ones).
+        PluginUnavailableError: ``ray`` without Ray installed.
+    """
+    if name not in EXECUTORS:
+        raise InputError(f"unknown executor {name!r}; valid executors: {', '.join(EXECUTORS)}")
+    if name == "ray":
+        import_ray()
+    return name
+
+
+def get_executor(name: str, *, threads: int = 1) -> Executor:
+    """Build the executor ``name`` for a run whose workers use ``threads`` torch threads each.
+
+    The Ray executor reads ``ICPBENCH_RAY_WORKERS`` (actor count) from the environment if set.
+    """
+    check_executor(name)
+    if name == "local":
+        return LocalExecutor()
+    workers = os.environ.get("ICPBENCH_RAY_WORKERS")
+    try:
+        n = int(workers) if workers else None
+    except ValueError:
+        raise InputError(f"ICPBENCH_RAY_WORKERS must be an integer, got {workers!r}") from None
+    return RayExecutor(num_workers=n, cpus_per_worker=max(1, threads))
