@@ -40,6 +40,9 @@ def study(models: dict[str, str], budget: float, n_objects: int = 24, n_figure: 
         attacks[b] = registry.attacks.get(b)()
     for name, ckpt in models.items():
         attacks[name] = registry.attacks.get("generator")(checkpoint=ckpt)
+    for name, ckpt in models.items():  # the soft bound audited: same models, strict projection
+        attacks[f"{name} (strict)"] = registry.attacks.get("generator")(checkpoint=ckpt,
+                                                                       strict=True)
     rows, clouds = [], {}
     for name, atk in attacks.items():
         out = atk.run(batch, budget, surrogate=target, generator=seed)
@@ -75,7 +78,7 @@ def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path) 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [n for n in clouds if n != "_clean"]
+    names = [n for n in clouds if n != "_clean" and not n.endswith("(strict)")]
     clean = clouds["_clean"]
     k = clean.shape[0]
     fig, axes = plt.subplots(k, len(names), figsize=(2.6 * len(names), 2.6 * k), squeeze=False)
