@@ -101,4 +101,9 @@ class GeneratorAttack(Attack):
         budget = (torch.full((x.shape[0],), float(budget_m), device=self.device)
                   if lg.config.conditioned else None)
         adv = model(x, geo, budget)
+        if lg.card.get("strict_training"):  # trained with the projection: apply it here too
+            from icpbench.training import project_per_sample
+
+            adv = project_per_sample(x, adv, torch.full((x.shape[0],), float(budget_m),
+                                                        device=self.device))
         return adv.to("cpu", batch.scans.dtype)

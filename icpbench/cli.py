@@ -323,6 +323,9 @@ def train(
     max_minutes: Annotated[float | None, typer.Option(help="Stop after this much training.")]
     = None,
     dataset_param: Annotated[list[str] | None, typer.Option(help="Dataset KEY=VALUE.")] = None,
+    strict: Annotated[bool, typer.Option(
+        help="Project displacements onto the λ-balls inside training (beyond the paper).")]
+    = False,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
@@ -333,7 +336,8 @@ def train(
         over = {k: v for k, v in dict(
             weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
             train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
-            device=device, threads=threads, max_minutes=max_minutes).items() if v is not None}
+            device=device, threads=threads, max_minutes=max_minutes,
+            strict=strict or None).items() if v is not None}
         if budgets:
             over["budgets"] = _floats(budgets, "--budgets")
         if dataset_param:

@@ -57,6 +57,9 @@ class TrainConfig:
         soft_dmax: smooth max-distance gate in the surrogate during training.
         seed, threads, device: reproducibility and hardware.
         max_minutes: stop after the epoch during which this wall time is exceeded (None = no limit).
+        strict: beyond the paper: project every point's displacement onto its lambda-ball inside
+            the training loop (differentiably), so the model learns attacks that respect the budget
+            exactly; the generator attack then applies the same projection (recorded in the card).
     """
 
     dataset: str = "lidar-sim"
@@ -81,6 +84,7 @@ class TrainConfig:
     threads: int = 1
     device: str = "cpu"
     max_minutes: float | None = None
+    strict: bool = False
 
 
 #: Named presets: ``quick`` trains on 2 CPU cores within about an hour; ``paper`` uses the paper's
@@ -122,6 +126,14 @@ def _budgets(cfg: TrainConfig) -> torch.Tensor:
     if b.numel() == 0 or not torch.isfinite(b).all() or (b <= 0).any():
         raise InputError(f"budgets must be positive numbers, got {cfg.budgets}")
     return b
+
+
+def project_per_sample(x: torch.Tensor, x_adv: torch.Tensor, budget: torch.Tensor) -> torch.Tensor:
+    """Differentiable projection of each point's displacement (B, N, 3) onto the ball of radius
+    ``budget[b]`` (B,) of its sample."""
+    d = x_adv - x
+    norm = torch.sqrt((d * d).sum(-1, keepdim=True) + 1e-12)
+    return x + d * torch.clamp(budget[:, None, None] / norm, max=1.0)
 
 
 def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
@@ -208,6 +220,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             geo = Geometry.stack([geos[i] for i in idx]).to(device)
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
             x_adv = net(x, geo, lam.to(torch.float32).to(device) if conditioned else None)
+            if cfg.strict:
+                x_adv = project_per_sample(x, x_adv, lam.to(x.dtype).to(device))
             l_rec = reconstruction_loss(x.double(), x_adv.double(), lam.to(device)).mean()
             if alpha > 0:
                 reg = surrogate.register(x_adv.double().cpu(), batch.maps, batch.T_init)
@@ -279,6 +293,7 @@ def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
         "optimiser": {"lr": cfg.lr, "step_epochs": cfg.lr_step_epochs, "gamma": cfg.lr_gamma,
                       "alpha": cfg.alpha, "beta": cfg.beta, "batch_size": cfg.batch_size},
         "icp_preset": cfg.icp_preset,
+        "strict_training": cfg.strict,
     }
 
 

@@ -54,3 +54,11 @@ def test_missing_shipped_checkpoint_is_a_clear_error():
 
     with pytest.raises(CheckpointError, match="no shipped generator checkpoint"):
         resolve_checkpoint("no-such-dataset", 1.0)
+
+
+def test_strict_training_keeps_the_budget(tmp_path):
+    cfg = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,
+                       pretrain_epochs=0, epochs=1, strict=True, dataset_params={"n_samples": 2})
+    card = train(cfg, tmp_path, progress=False)
+    assert card["strict_training"] is True
+    assert card["heldout_eval"]["0.05"]["disp_max_mean"] <= 0.05 + 1e-6
