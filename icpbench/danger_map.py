@@ -18,6 +18,7 @@ import pandas as pd
 from scipy import stats
 
 from icpbench.errors import InputError
+from icpbench.plotting import pyplot, save
 
 LOCATION = "meta.frame"
 ERROR_CAP_M = 3.0  # colour scale cap of figure 5
@@ -96,10 +97,7 @@ def plot_route(per_loc: pd.DataFrame, path: str | Path, *, column: str = "trans_
                title: str = "", cap: float = ERROR_CAP_M, n_labels: int = 5,
                diverging: bool = False, label: str = "worst-case translation error [m]") -> Path:
     """Top view of the route coloured by ``column`` (capped), most dangerous places labelled."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(8, 7))
     v = per_loc[column].to_numpy(dtype=float)
@@ -127,12 +125,7 @@ def plot_route(per_loc: pd.DataFrame, path: str | Path, *, column: str = "trans_
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=120)
 
 
 def comparison(df: pd.DataFrame, ours: str, other: str, budget: float) -> pd.DataFrame:
@@ -147,10 +140,7 @@ def comparison(df: pd.DataFrame, ours: str, other: str, budget: float) -> pd.Dat
 
 def plot_comparison(cmp: pd.DataFrame, path: str | Path, ours: str, other: str) -> Path:
     """Figure 6: route coloured by the difference, and a violin plot with the IQR marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax, av) = plt.subplots(1, 2, figsize=(12, 6), gridspec_kw={"width_ratios": [3, 1]})
     v = cmp["difference"].to_numpy(dtype=float)
@@ -168,12 +158,7 @@ def plot_comparison(cmp: pd.DataFrame, path: str | Path, ours: str, other: str) 
     av.axhline(0, color="grey", lw=0.8, ls="--")
     av.set_xticks([1], [f"{ours} - {other}"])
     av.set_ylabel("difference [m] (white bar: IQR)")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=120)
 
 
 def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path,

@@ -18,6 +18,7 @@ import torch
 
 from icpbench import registry
 from icpbench.attacks.base import Attack
+from icpbench.plotting import pyplot, save
 from icpbench.se3 import pose_error_components
 from icpbench.targets.p2plane import PointToPlaneICP
 from icpbench.types import Batch
@@ -73,10 +74,7 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
 
 def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path) -> Path:
     """Grid: objects x (original, attacks...), coloured by displacement angle (hsv)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     names = [n for n in clouds if n != "_clean" and not n.endswith("(strict)")]
     clean = clouds["_clean"]
@@ -105,9 +103,4 @@ def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path) 
                 ax.set_title(n, fontsize=9)
     fig.suptitle("colour: angle of X_adv - X in x-y; top right: heading error; bottom right: "
                  "x-y error (normalised units)", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=110)
