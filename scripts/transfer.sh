@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# Transfer table on lidar-sim at λ = 1 m (issue 7): attacks crafted on the differentiable p2plane
+# surrogate, evaluated on every target. ~10 min on 2 cores for 20 samples (PGD dominates).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=results/lidar-sim-transfer
+icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,pgd \
+  --targets p2plane,p2point,open3d,kiss-icp,small-gicp --budgets 1 --samples 20 --batch-size 4 \
+  --reference pgd --out "$OUT" --quiet
+icpbench table "$OUT" --transfer 1 --out "$OUT/transfer.md"
+icpbench table "$OUT" --reference pgd --target p2plane --out "$OUT/table1_p2plane.md"
