@@ -299,3 +299,19 @@ def test_boreas_input_errors(boreas, tmp_path):
     (bad / "boreas-2021-01-26-10-59" / "applanix" / "lidar_poses.csv").unlink()
     with pytest.raises(InputError, match="missing Boreas pose file"):
         BoreasDataset(bad)
+
+
+@pytest.mark.parametrize("content, needle", [(b"", r"is empty \(0 bytes\)"),
+                                             ("nan", r"corrupt: 1 point\(s\) have NaN")])
+def test_boreas_empty_or_nan_scan_is_named(tmp_path, content, needle):
+    from icpbench.datasets.boreas import read_boreas_bin
+
+    path = tmp_path / "1600000000000000.bin"
+    if content == "nan":
+        rec = np.ones((5, 6), dtype="<f4")
+        rec[2, 1] = np.nan
+        rec.tofile(path)
+    else:
+        path.write_bytes(content)
+    with pytest.raises(InputError, match=needle):
+        read_boreas_bin(path)

@@ -69,14 +69,7 @@ def pose_from_row(row: np.ndarray) -> np.ndarray:
 
 def read_boreas_bin(path: Path) -> np.ndarray:
     """Points (K, 6) float64 ``x, y, z, intensity, ring, t`` of a Boreas lidar ``.bin``."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"missing Boreas scan {path}")
-    size = path.stat().st_size
-    if size % 24:
-        raise InputError(f"{path} has {size} bytes, not a multiple of 24 (6 float32 per point): "
-                         "the file is truncated or not a Boreas lidar scan")
-    return np.fromfile(path, dtype="<f4").reshape(-1, 6).astype(np.float64)
+    return sm.read_float32_records(path, 6, "Boreas lidar scan")
 
 
 def read_pose_csv(path: Path) -> np.ndarray:

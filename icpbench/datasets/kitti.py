@@ -36,20 +36,7 @@ FORMAT_VERSION = 1
 
 def read_kitti_bin(path: Path) -> np.ndarray:
     """Points (K, 3) float64 (x, y, z in the Velodyne frame) of a KITTI ``.bin`` scan."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"missing KITTI scan {path}")
-    size = path.stat().st_size
-    if size % 16:
-        raise InputError(f"{path} has {size} bytes, not a multiple of 16 (4 float32 per point): "
-                         "the file is truncated or not a KITTI velodyne scan")
-    if size == 0:
-        raise InputError(f"KITTI scan {path} is empty (0 bytes)")
-    pts = np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3].astype(np.float64)
-    if not np.all(np.isfinite(pts)):
-        raise InputError(f"KITTI scan {path} is corrupt: {int((~np.isfinite(pts)).any(1).sum())} "
-                         "point(s) have NaN or Inf coordinates")
-    return pts
+    return sm.read_float32_records(path, 4, "KITTI scan")[:, :3]
 
 
 def read_calib_tr(path: Path) -> np.ndarray:

@@ -29,6 +29,30 @@ from icpbench.types import Sample
 # ---------------------------------------------------------------------------------------------
 # Geometry helpers
 # ---------------------------------------------------------------------------------------------
+def read_float32_records(path: str | Path, fields: int, what: str) -> np.ndarray:
+    """Points (K, fields) float64 of a headerless little-endian float32 lidar file (KITTI: 4 fields,
+    Boreas: 6). The first three fields are x, y, z.
+
+    Raises:
+        InputError: missing or empty file, a size that is not a whole number of records
+            (truncated), or NaN/Inf coordinates (corrupt); the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"missing {what} {path}")
+    size = path.stat().st_size
+    if size % (4 * fields):
+        raise InputError(f"{path} has {size} bytes, not a multiple of {4 * fields} ({fields} float32 "
+                         f"per point): the file is truncated or not a {what}")
+    if size == 0:
+        raise InputError(f"{what} {path} is empty (0 bytes)")
+    rec = np.fromfile(path, dtype="<f4").reshape(-1, fields).astype(np.float64)
+    bad = int((~np.isfinite(rec[:, :3])).any(1).sum())
+    if bad:
+        raise InputError(f"{what} {path} is corrupt: {bad} point(s) have NaN or Inf coordinates")
+    return rec
+
+
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a (4, 4) transform to points (K, 3); returns float64."""
     T = np.asarray(T, dtype=np.float64)
