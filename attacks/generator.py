@@ -99,7 +99,7 @@ class GeneratorAttack(Attack):
         x = batch.scans.to(torch.float32).to(self.device)
         geo = model.precompute(batch.scans.to(torch.float32)).to(self.device)
         budget = (torch.full((x.shape[0],), float(budget_m), device=self.device)
-                  if lg.config.conditioned else None)
+                  if model.needs_budget else None)
         adv = model(x, geo, budget)
         if lg.card.get("strict_training"):  # trained with the projection: apply it here too
             from icpbench.training import project_per_sample

@@ -326,6 +326,11 @@ def train(
     strict: Annotated[bool, typer.Option(
         help="Project displacements onto the λ-balls inside training (beyond the paper).")]
     = False,
+    generator_param: Annotated[list[str] | None, typer.Option(
+        help="Generator config KEY=VALUE (e.g. output=bounded, conditioned=false).")] = None,
+    adv_per_budget: Annotated[bool | None, typer.Option(
+        "--adv-per-budget/--no-adv-per-budget",
+        help="Divide each sample's adversarial loss by its λ.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
@@ -337,7 +342,9 @@ def train(
             weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
             train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
             device=device, threads=threads, max_minutes=max_minutes,
-            strict=strict or None).items() if v is not None}
+            strict=strict or None, adv_per_budget=adv_per_budget).items() if v is not None}
+        if generator_param:
+            over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets:
             over["budgets"] = _floats(budgets, "--budgets")
         if dataset_param:

@@ -48,13 +48,15 @@ class Cell:
 
 
 def pct_reference_larger(df: pd.DataFrame, attack: str, reference: str,
-                         metric: str = "trans_err_xy") -> tuple[float | None, int]:
+                         metric: str = "trans_err_xy", *, converged_only: bool = True
+                         ) -> tuple[float | None, int]:
     """Share (percent) of pairs where ``reference``'s error exceeds ``attack``'s, and the pair count.
 
-    Pairs: same (sample_id, target, budget, seed), both rows converged. Ties are not "larger".
+    Pairs: same (sample_id, target, budget, seed), both rows converged (``converged_only=False``:
+    every row with a finite error, non-converged ones at their final error). Ties are not "larger".
     Returns (None, 0) when there is no pair.
     """
-    ok = df[df["converged"]]
+    ok = df[df["converged"]] if converged_only else df[np.isfinite(df[metric].astype(float))]
     a = ok[ok["attack"] == attack][PAIR_KEYS + [metric]]
     r = ok[ok["attack"] == reference][PAIR_KEYS + [metric]]
     m = a.merge(r, on=PAIR_KEYS, suffixes=("_a", "_r"))
@@ -152,6 +154,41 @@ def health_warnings(df: pd.DataFrame, threshold: float = 0.10) -> list[str]:
     return out
 
 
+def all_pairs_notes(df: pd.DataFrame, reference: str) -> list[str]:
+    """Footer: "% Ours is Larger" over every pair with a finite error, non-converged runs counted
+    at their final error (the table itself pairs converged runs only, as the paper does)."""
+    if df.empty or reference not in set(df["attack"]):
+        return []
+    parts = []
+    for a in attack_order(sorted(set(df["attack"]) - {reference}), reference):
+        for b in sorted(df["budget"].unique()):
+            pct, n = pct_reference_larger(df[df["budget"] == b], a, reference, converged_only=False)
+            if pct is not None:
+                parts.append(f"{DISPLAY.get(a, a)} λ={b:g}: {pct:.1f}% of {n}")
+    if not parts:
+        return []
+    return [f"% {DISPLAY.get(reference, reference)} is larger incl. non-converged runs: "
+            + "; ".join(parts)]
+
+
+def displacement_notes(df: pd.DataFrame) -> list[str]:
+    """One footer line per attack with a non-zero displacement: per budget the largest point
+    displacement over all samples and the mean share of points moved beyond lambda (the budget
+    audit of the attack base class; soft-bound attacks can exceed lambda)."""
+    need = {"disp_max", "frac_over_budget"}
+    if df.empty or not need <= set(df.columns):
+        return []
+    out = []
+    for a, g in df.groupby("attack", sort=True):
+        if not (g["disp_max"].fillna(0) > 0).any():
+            continue
+        parts = [f"λ={b:g}: max {gb['disp_max'].max():.3g}, "
+                 f"{100 * gb['frac_over_budget'].mean():.2f}% of points over λ"
+                 for b, gb in g.groupby("budget")]
+        out.append(f"displacement audit {DISPLAY.get(a, a)}: " + "; ".join(parts))
+    return out
+
+
 def render(frame: pd.DataFrame, fmt: Format = "md") -> str:
     """Render a table frame as Markdown (GitHub), LaTeX (booktabs) or CSV."""
     if fmt == "md":
@@ -175,6 +212,8 @@ def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
     notes = ["n converged / dropped / pairs per cell: " + "; ".join(
         f"{DISPLAY.get(r.attack, r.attack)} λ={r.budget:g}: {r.n}/{r.dropped}/{r.pairs}"
         for r in counts.itertuples())]
+    notes += all_pairs_notes(sub, reference)
+    notes += displacement_notes(sub)
     notes += health_warnings(sub)
     prefix = "% " if fmt == "latex" else ""
     return text + "\n\n" + "\n".join(prefix + n for n in notes) + "\n"

@@ -60,6 +60,8 @@ class TrainConfig:
         strict: beyond the paper: project every point's displacement onto its lambda-ball inside
             the training loop (differentiably), so the model learns attacks that respect the budget
             exactly; the generator attack then applies the same projection (recorded in the card).
+        adv_per_budget: divide each sample's adversarial loss by its lambda, so that with several
+            budgets the large ones (whose errors are larger) do not dominate the gradient.
     """
 
     dataset: str = "lidar-sim"
@@ -85,6 +87,7 @@ class TrainConfig:
     device: str = "cpu"
     max_minutes: float | None = None
     strict: bool = False
+    adv_per_budget: bool = False
 
 
 #: Named presets: ``quick`` trains on 2 CPU cores within about an hour; ``paper`` uses the paper's
@@ -166,8 +169,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     w = weights(cfg.weights)
     budgets = _budgets(cfg)
     conditioned = budgets.numel() > 1
-    gcfg = generator_config(cfg.generator_preset, conditioned=conditioned,
-                            **cfg.generator_overrides)
+    gcfg = generator_config(cfg.generator_preset,
+                            **{"conditioned": conditioned, **cfg.generator_overrides})
     torch.manual_seed(cfg.seed)
     model = Generator(gcfg).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
@@ -219,14 +222,17 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             x = batch.scans.to(torch.float32).to(device)
             geo = Geometry.stack([geos[i] for i in idx]).to(device)
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
-            x_adv = net(x, geo, lam.to(torch.float32).to(device) if conditioned else None)
+            x_adv = net(x, geo, lam.to(torch.float32).to(device) if model.needs_budget else None)
             if cfg.strict:
                 x_adv = project_per_sample(x, x_adv, lam.to(x.dtype).to(device))
             l_rec = reconstruction_loss(x.double(), x_adv.double(), lam.to(device)).mean()
             if alpha > 0:
                 reg = surrogate.register(x_adv.double().cpu(), batch.maps, batch.T_init)
                 xi = pose_error(reg.T, batch.T_gt)
-                l_adv = adversarial_loss(xi, w).mean()
+                l_adv = adversarial_loss(xi, w)
+                if cfg.adv_per_budget:  # errors grow ~linearly with lambda: balance the budgets
+                    l_adv = l_adv / lam.to(l_adv.dtype)
+                l_adv = l_adv.mean()
                 err = float(torch.linalg.norm(xi[:, :2].detach(), dim=-1).mean())
             else:
                 l_adv, err = torch.zeros((), dtype=torch.float64), float("nan")
@@ -294,6 +300,7 @@ def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
                       "alpha": cfg.alpha, "beta": cfg.beta, "batch_size": cfg.batch_size},
         "icp_preset": cfg.icp_preset,
         "strict_training": cfg.strict,
+        "adv_per_budget": cfg.adv_per_budget,
     }
 
 
@@ -314,7 +321,7 @@ def evaluate(cfg: TrainConfig, ckpt: Path, *, progress: bool = False) -> dict[st
             with torch.no_grad():
                 geo = lg.model.precompute(x)
                 adv = lg.model(x.to(cfg.device), geo.to(cfg.device),
-                               torch.full((len(batch),), float(lam)) if lg.config.conditioned
+                               torch.full((len(batch),), float(lam)) if lg.model.needs_budget
                                else None).cpu().double()
                 reg = target.register(adv, batch.maps, batch.T_init)
             e = pose_error_components(reg.T, batch.T_gt)

@@ -247,10 +247,30 @@ def test_budget_conditioning():
         G(x, geo)
     with pytest.raises(InputError, match="finite and >= 0"):
         G(x, geo, torch.tensor([0.1, -1.0]))
-    with pytest.raises(InputError, match="not budget-conditioned"):
+    with pytest.raises(InputError, match="takes no budget"):
         randomised(generator_config("objects"))(x, geo, torch.ones(2))
     with pytest.raises(InputError, match="use Generator.precompute"):
         Generator(generator_config("lidar"))(x, geo)
+
+
+def test_bounded_output_respects_the_budget_and_scales_with_it():
+    G = randomised(generator_config("objects", output="bounded"))
+    with torch.no_grad():  # large random head weights: saturate the radial tanh
+        G.head[-1].weight.normal_(0, 5.0)
+    x = torch.as_tensor(np.stack([cloud(18), cloud(18)]))
+    geo = G.precompute(x)
+    lam = torch.tensor([0.05, 0.2], dtype=torch.float64)
+    with torch.no_grad():
+        y = G(x, geo, lam)
+    d = torch.linalg.norm(y - x, dim=-1)
+    assert (d[0] < 0.05).all() and (d[1] < 0.2).all()
+    assert d[0].max() > 0.045  # saturated points come close to the bound
+    torch.testing.assert_close(y[1] - x[1], 4 * (y[0] - x[0]))  # lambda is a pure scale
+    with pytest.raises(InputError, match="bounded"):
+        G(x, geo)
+    G0 = Generator(generator_config("objects", output="bounded"))  # zero-initialised last layer
+    with torch.no_grad():
+        assert torch.equal(G0(x, geo, lam), x)
 
 
 @pytest.mark.parametrize("norm", ["none", "batch"])

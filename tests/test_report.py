@@ -47,6 +47,26 @@ def test_pct_reference_larger_counts_ties_drops_and_unpaired(df):
     assert pct == pytest.approx(25.0)
 
 
+def test_pct_reference_larger_with_non_converged_runs(df):
+    pct, n = pct_reference_larger(df, "normal", "generator", converged_only=False)
+    # + s4 (ref 9.0 > 1.1, larger) and s6 (3.0 < 7.0, smaller): 2 of 6
+    assert n == 6
+    assert pct == pytest.approx(100 * 2 / 6)
+    text = table1(df, "md")
+    assert "% Ours is larger incl. non-converged runs" in text
+    assert "Normal λ=1: 33.3% of 6" in text
+
+
+def test_displacement_audit_footer(df):
+    d = df.assign(disp_max=np.where(df["attack"] == "generator", 1.4, 1.0),
+                  frac_over_budget=np.where(df["attack"] == "generator", 0.25, 0.0))
+    d.loc[d["attack"] == "none", ["disp_max", "frac_over_budget"]] = 0.0
+    text = table1(d, "md")
+    lines = [ln for ln in text.splitlines() if ln.startswith("displacement audit")]
+    assert len(lines) == 2  # generator and normal; the clean rows moved nothing
+    assert any("max 1.4, 25.00% of points over λ" in ln for ln in lines)
+
+
 def test_mean_std_over_converged_only(df):
     cells = table1_cells(df, reference="generator")
     c = cells[("normal", 1.0)]

@@ -62,3 +62,24 @@ def test_strict_training_keeps_the_budget(tmp_path):
     card = train(cfg, tmp_path, progress=False)
     assert card["strict_training"] is True
     assert card["heldout_eval"]["0.05"]["disp_max_mean"] <= 0.05 + 1e-6
+
+
+def test_bounded_multi_budget_training_respects_every_budget(tmp_path):
+    """output=bounded: one model, lambda as a scale; every held-out displacement stays below lambda
+    and the generator attack passes the budget at run time (no projection needed)."""
+    cfg = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,
+                       pretrain_epochs=0, epochs=1, budgets=[0.02, 0.05], adv_per_budget=True,
+                       generator_overrides={"output": "bounded", "conditioned": False},
+                       dataset_params={"n_samples": 2})
+    card = train(cfg, tmp_path / "gen", progress=False)
+    assert card["adv_per_budget"] is True
+    for lam in ("0.02", "0.05"):
+        ev = card["heldout_eval"][lam]
+        assert 0 < ev["disp_max_mean"] < float(lam)
+    run(RunConfig(dataset="objects", attacks=["generator"], targets=["p2plane"], budgets=[0.02, 0.05],
+                  samples=2, dataset_params={"n_samples": 2},
+                  attack_params={"generator": {"checkpoint": str(tmp_path / "gen" / "generator.pt")}}),
+        tmp_path / "run", progress=False)
+    df = load_results(tmp_path / "run")
+    assert len(df) == 4 and (df["status"] != "error").all(), df["error"].tolist()
+    assert (df["disp_max"] < df["budget"]).all() and (df["frac_over_budget"] == 0).all()

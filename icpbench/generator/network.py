@@ -26,6 +26,15 @@ Design choices (the paper does not state them; see also research/dicp_pointnet.m
   skipped; gradients still reach every layer after the first step because the zero layer's own
   gradient (features x upstream gradient) is non-zero. ``output="absolute"`` reproduces the paper
   (``X_adv = scale_m * h``, default initialisation), for which pretraining is meaningful.
+* **Bounded output** (``output="bounded"``, beyond the paper): ``X_adv = X + lambda * u`` with
+  ``u = h tanh(|h|) / |h|`` per point, so every displacement is strictly shorter than the budget
+  lambda by construction and the model needs lambda at run time. The paper's bound is soft (the
+  SoftShrink loss of eq. 4 only penalises excess); on lidar-sim our soft-bound models moved points
+  3-4 m at lambda = 1 m (see the lidar model cards), which makes their errors incomparable with
+  budget-respecting baselines. The radial tanh is the identity near zero (zero-initialised last
+  layer: an untrained model returns the clean scan) and saturates smoothly, so gradients never
+  vanish abruptly as they would behind a hard projection. With ``lambda`` a scale of the output,
+  one model serves every budget; ``conditioned=True`` additionally lets the directions depend on it.
 * **GroupNorm** (default ``norm="group"``, 8 groups) after every SA/FP convolution, none in the
   head (as LG-GAN's head). BatchNorm couples the samples of a batch (an attack's result would
   depend on what else is in the batch), behaves differently in train and eval mode, and its running
@@ -65,7 +74,7 @@ from icpbench.errors import InputError
 from icpbench.generator.geometry import Geometry, GeometryConfig, compute_geometry_batch
 
 Norm = Literal["group", "batch", "none"]
-Output = Literal["residual", "absolute"]
+Output = Literal["residual", "absolute", "bounded"]
 
 #: Shared-MLP widths of the four SA levels and of the head (paper Fig. 2 / LG-GAN).
 SA_WIDTHS: tuple[tuple[int, ...], ...] = ((32, 32, 64), (64, 64, 128), (128, 128, 256), (256, 256, 512))
@@ -82,7 +91,8 @@ class GeneratorConfig:
             :class:`~icpbench.generator.geometry.GeometryConfig`.
         scale_m: coordinates are divided by this inside the network (metres; 1 for unit objects).
         offset_scale_m: residual output unit (metres): ``X_adv = X + offset_scale_m * h``.
-        output: ``"residual"`` (zero-initialised offset) or ``"absolute"`` (paper/LG-GAN).
+        output: ``"residual"`` (zero-initialised offset), ``"absolute"`` (paper/LG-GAN) or
+            ``"bounded"`` (``X + lambda * u``, ``|u| < 1``; needs the budget at run time).
         norm: ``"group"``, ``"batch"`` or ``"none"`` after SA and FP convolutions.
         norm_groups: GroupNorm groups (must divide 32).
         conditioned: take a per-sample budget lambda (metres) as an extra head input channel.
@@ -244,7 +254,7 @@ class Generator(nn.Module):
         dims = (FP_WIDTH * 3 + SA_WIDTHS[0][-1] + 3, *HEAD_WIDTHS, 3)
         self.head = nn.ModuleList([nn.Conv1d(i + extra, o, 1)
                                    for i, o in zip(dims[:-1], dims[1:], strict=True)])
-        if cfg.output == "residual":
+        if cfg.output in ("residual", "bounded"):
             nn.init.zeros_(self.head[-1].weight)
             nn.init.zeros_(self.head[-1].bias)
         #: Samples per chunk in :meth:`forward` (None: 1 on CPU, where per-sample passes keep the
@@ -272,18 +282,24 @@ class Generator(nn.Module):
             raise InputError(f"geometry is for {geo.batch_size} scans of {geo.sizes[0]} points, "
                              f"x has {B} scans of {N} points")
 
+    @property
+    def needs_budget(self) -> bool:
+        """Whether :meth:`forward` takes the budget (conditioned or bounded models)."""
+        return self.config.conditioned or self.config.output == "bounded"
+
     def _check_budget(self, budget: Tensor | None, B: int) -> None:
-        if self.config.conditioned:
+        if self.needs_budget:
             if budget is None:
-                raise InputError("this generator is budget-conditioned: pass budget_m (B,) in metres")
+                raise InputError("this generator is budget-conditioned or bounded: pass budget_m "
+                                 "(B,) in metres")
             if not isinstance(budget, Tensor) or budget.shape != (B,):
                 raise InputError(f"budget must be a tensor of shape ({B},), got "
                                  f"{getattr(budget, 'shape', type(budget).__name__)}")
             if not bool(torch.isfinite(budget).all() and (budget >= 0).all()):
                 raise InputError("budget must be finite and >= 0 (metres)")
         elif budget is not None:
-            raise InputError("this generator is not budget-conditioned (config.conditioned=False); "
-                             "pass budget=None")
+            raise InputError("this generator takes no budget (conditioned=False and output is not "
+                             "'bounded'); pass budget=None")
 
     # -- network ------------------------------------------------------------------------------
     def encode(self, x: Tensor, geo: Geometry) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -336,6 +352,12 @@ class Generator(nn.Module):
         out = h.transpose(1, 2)  # (B, N, 3)
         if self.config.output == "residual":
             return x + (self.config.offset_scale_m * out).to(x.dtype)
+        if self.config.output == "bounded":
+            assert budget is not None
+            r = torch.sqrt((out * out).sum(-1, keepdim=True) + 1e-12)
+            u = out * (torch.tanh(r) / r)  # |u| < 1, ~ out near 0
+            lam = budget.to(device=out.device, dtype=out.dtype)[:, None, None]
+            return x + (lam * u).to(x.dtype)
         return (self.config.scale_m * out).to(x.dtype)
 
     def forward(self, x: Tensor, geo: Geometry, budget: Tensor | None = None) -> Tensor:
