@@ -7,8 +7,9 @@ displacement audit of the base class matters here; run with ``--strict`` to proj
 lambda-balls as well.
 
 Checkpoint resolution: an explicit ``checkpoint=PATH``; otherwise the checkpoints shipped with the
-package for the dataset, ``icpbench/checkpoints/<dataset>/``: ``generator.pt`` (a lambda-conditioned
-model serving every budget) or ``generator-l<lambda>.pt`` (one model per budget).
+package for the dataset, ``icpbench/checkpoints/<dataset>/``: ``generator-l<lambda>.pt`` (a model
+for that budget) if present, else ``generator.pt`` (a model serving every budget: lambda-conditioned
+or with the bounded output, where lambda scales the displacement).
 """
 
 from __future__ import annotations
@@ -41,11 +42,11 @@ def resolve_checkpoint(dataset: str | None, budget_m: float, checkpoint: str | N
         raise CheckpointError("the generator needs checkpoint=PATH (no dataset given to pick a "
                               "shipped checkpoint)")
     d = shipped_checkpoint_dir(dataset)
-    if (d / "generator.pt").is_file():
-        return d / "generator.pt"
     per_budget = d / f"generator-l{budget_m:g}.pt"
     if per_budget.is_file():
         return per_budget
+    if (d / "generator.pt").is_file():
+        return d / "generator.pt"
     have = sorted(p.name for p in d.glob("*.pt")) if d.is_dir() else []
     raise CheckpointError(
         f"no shipped generator checkpoint for dataset {dataset!r} at budget {budget_m:g} "
@@ -101,9 +102,15 @@ class GeneratorAttack(Attack):
         budget = (torch.full((x.shape[0],), float(budget_m), device=self.device)
                   if model.needs_budget else None)
         adv = model(x, geo, budget)
-        if lg.card.get("strict_training"):  # trained with the projection: apply it here too
+        # the network runs in float32; add its displacement to the scans in their own precision, so
+        # that rounding the input to float32 (~2e-6 m at 40 m) does not count as a displacement
+        adv = batch.scans + (adv - x).to("cpu", batch.scans.dtype)
+        if lg.card.get("strict_training") or lg.config.output == "bounded":
+            # strict training: the model was trained behind this projection, so apply it here too;
+            # bounded output: |displacement| < lambda already, the projection only removes float32
+            # rounding at saturation (|u| = 1.0 in float32)
             from icpbench.training import project_per_sample
 
-            adv = project_per_sample(x, adv, torch.full((x.shape[0],), float(budget_m),
-                                                        device=self.device))
-        return adv.to("cpu", batch.scans.dtype)
+            adv = project_per_sample(batch.scans, adv,
+                                     torch.full((x.shape[0],), float(budget_m), dtype=adv.dtype))
+        return adv

@@ -192,15 +192,22 @@ def table(
     out: Annotated[Path | None, typer.Option(help="Write to this file instead of stdout.")] = None,
 ) -> None:
     """Regenerate Table 1 (or the transfer table) from stored results."""
-    from icpbench.report import render, table1, transfer_frame
+    from icpbench.report import render, table1, transfer_frame, transfer_vs_baseline
     from icpbench.results import load_results
 
     try:
         if format not in ("md", "latex", "csv"):
             raise typer.BadParameter(f"--format must be md, latex or csv, got {format!r}")
         df = load_results(results_dir)
-        text = (render(transfer_frame(df, transfer), format) if transfer is not None
-                else table1(df, format, reference=reference, target=target))
+        if transfer is not None:
+            text = render(transfer_frame(df, transfer), format)
+            if format != "csv" and "normal" in set(df["attack"]):
+                text += ("\n\nDo attacks crafted on the surrogate beat `normal` on each target? "
+                         "Difference of mean errors (converged runs) and share of samples with "
+                         "a larger error (non-converged runs at their final error):\n\n"
+                         + render(transfer_vs_baseline(df, transfer), format) + "\n")
+        else:
+            text = table1(df, format, reference=reference, target=target)
         if out is None:
             typer.echo(text)
         else:
@@ -305,7 +312,8 @@ def object_study(
 
 @app.command()
 def train(
-    preset: Annotated[str, typer.Option(help="quick-lidar, paper-lidar, quick-objects, paper-objects.")]
+    preset: Annotated[str, typer.Option(
+        help="quick-lidar, quick-lidar-soft, paper-lidar, quick-objects, paper-objects.")]
     = "quick-lidar",
     out: Annotated[Path, typer.Option(help="Output directory (re-run to resume).")]
     = Path("runs/train"),
@@ -331,6 +339,8 @@ def train(
     adv_per_budget: Annotated[bool | None, typer.Option(
         "--adv-per-budget/--no-adv-per-budget",
         help="Divide each sample's adversarial loss by its λ.")] = None,
+    init: Annotated[str | None, typer.Option(
+        help="Start from this checkpoint (fine-tuning, e.g. one model per λ).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
@@ -342,7 +352,8 @@ def train(
             weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
             train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
             device=device, threads=threads, max_minutes=max_minutes,
-            strict=strict or None, adv_per_budget=adv_per_budget).items() if v is not None}
+            strict=strict or None, adv_per_budget=adv_per_budget,
+            init_checkpoint=init).items() if v is not None}
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets:

@@ -171,6 +171,22 @@ def all_pairs_notes(df: pd.DataFrame, reference: str) -> list[str]:
             + "; ".join(parts)]
 
 
+def timing_notes(df: pd.DataFrame, reference: str) -> list[str]:
+    """Footer: mean attack wall time per scan (all budgets), and each attack's ratio to the
+    reference's, from the ``attack_time_s`` column (one attack pass per batch, divided by B)."""
+    if df.empty or "attack_time_s" not in df.columns:
+        return []
+    t = df.drop_duplicates(["sample_id", "attack", "budget", "seed"]).groupby("attack")[
+        "attack_time_s"].mean()
+    ref = t.get(reference)
+    parts = []
+    for a in attack_order(list(t.index), reference):
+        ratio = f" ({t[a] / ref:.2g}x {DISPLAY.get(reference, reference)})" if (
+            ref and ref > 0 and a != reference) else ""
+        parts.append(f"{DISPLAY.get(a, a)} {t[a]:.3g}{ratio}")
+    return ["attack time per scan [s]: " + "; ".join(parts)]
+
+
 def displacement_notes(df: pd.DataFrame) -> list[str]:
     """One footer line per attack with a non-zero displacement: per budget the largest point
     displacement over all samples and the mean share of points moved beyond lambda (the budget
@@ -214,6 +230,7 @@ def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
         for r in counts.itertuples())]
     notes += all_pairs_notes(sub, reference)
     notes += displacement_notes(sub)
+    notes += timing_notes(sub, reference)
     notes += health_warnings(sub)
     prefix = "% " if fmt == "latex" else ""
     return text + "\n\n" + "\n".join(prefix + n for n in notes) + "\n"
@@ -240,5 +257,33 @@ def transfer_frame(df: pd.DataFrame, budget: float | None = None, metric: str = 
             ok = g[g["converged"]][metric]
             row[t] = (f"{ok.mean():.{decimals}f} ± {ok.std(ddof=0):.{decimals}f} (n={len(ok)})"
                       if len(ok) else f"n/a (0/{len(g)} converged)")
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def transfer_vs_baseline(df: pd.DataFrame, budget: float | None = None, baseline: str = "normal",
+                         metric: str = "trans_err_xy") -> pd.DataFrame:
+    """Attacks x targets: does an attack crafted on the surrogate still beat ``baseline`` on each
+    target? Cell: difference of the means (converged rows) and the share of samples where the
+    attack's error exceeds the baseline's (all pairs with a finite error, non-converged runs at
+    their final error), e.g. ``+1.98 m, 95% of 20``."""
+    budgets = sorted(df["budget"].unique())
+    budget = budgets[0] if budget is None else budget
+    d = df[np.isclose(df["budget"], budget)]
+    if baseline not in set(d["attack"]):
+        raise InputError(f"baseline attack {baseline!r} not in results")
+    targets = list(dict.fromkeys(d["target"]))
+    attacks = [a for a in attack_order(sorted(d["attack"].unique()), "generator")
+               if a not in (baseline, "none")]
+    rows = []
+    for a in attacks:
+        row = {"Attack": f"{DISPLAY.get(a, a)} vs {DISPLAY.get(baseline, baseline)}"}
+        for t in targets:
+            dt = d[d["target"] == t]
+            ma = dt[(dt["attack"] == a) & dt["converged"]][metric].mean()
+            mb = dt[(dt["attack"] == baseline) & dt["converged"]][metric].mean()
+            pct, n = pct_reference_larger(dt, baseline, a, metric, converged_only=False)
+            row[t] = ("n/a" if pct is None or not np.isfinite(ma - mb)
+                      else f"{ma - mb:+.2f} m, {pct:.0f}% of {n}")
         rows.append(row)
     return pd.DataFrame(rows)

@@ -118,3 +118,22 @@ def test_several_targets_need_choice_and_transfer_table(df):
     tr = transfer_frame(df2, 1.0)
     assert list(tr.columns) == ["Attack", "p2plane", "open3d"]
     assert tr.iloc[0]["open3d"].startswith("0.40 ± 0.20")
+
+
+def test_transfer_vs_baseline_difference_and_share():
+    from icpbench.report import transfer_vs_baseline
+
+    rows = []
+    for t, (pgd_errs, conv) in {"p2plane": ([3.0, 2.0, 0.5], True),
+                                "kiss-icp": ([1.0, 1.0, 1.0], False)}.items():
+        for i, e in enumerate(pgd_errs):
+            rows += [_row(f"s{i}", "pgd", e, conv=conv if i == 0 else True, target=t),
+                     _row(f"s{i}", "normal", 1.0 + 0.1 * i, target=t)]
+    frame = transfer_vs_baseline(pd.DataFrame(rows))
+    assert list(frame["Attack"]) == ["PGD (oracle) vs Normal"]
+    # p2plane: means 1.833 vs 1.1 -> +0.73; pgd larger on s0, s1 -> 67% of 3
+    assert frame.loc[0, "p2plane"] == "+0.73 m, 67% of 3"
+    # kiss-icp: s0 not converged (left out of the mean, kept in the share): 1.0 vs 1.1 -> -0.10
+    assert frame.loc[0, "kiss-icp"] == "-0.10 m, 0% of 3"
+    with pytest.raises(InputError, match="baseline"):
+        transfer_vs_baseline(pd.DataFrame(rows), baseline="uniform")

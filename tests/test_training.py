@@ -83,3 +83,14 @@ def test_bounded_multi_budget_training_respects_every_budget(tmp_path):
     df = load_results(tmp_path / "run")
     assert len(df) == 4 and (df["status"] != "error").all(), df["error"].tolist()
     assert (df["disp_max"] < df["budget"]).all() and (df["frac_over_budget"] == 0).all()
+
+
+def test_per_budget_checkpoint_takes_precedence(tmp_path, monkeypatch):
+    import icpbench.attacks.generator as ga
+
+    (tmp_path / "generator.pt").write_bytes(b"x")
+    (tmp_path / "generator-l5.pt").write_bytes(b"x")
+    monkeypatch.setattr(ga, "shipped_checkpoint_dir", lambda dataset: tmp_path)
+    assert ga.resolve_checkpoint("lidar-sim", 5.0).name == "generator-l5.pt"
+    assert ga.resolve_checkpoint("lidar-sim", 2.0).name == "generator.pt"
+    assert ga.resolve_checkpoint("lidar-sim", 2.0, str(tmp_path / "x.pt")).name == "x.pt"
