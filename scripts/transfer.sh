@@ -4,7 +4,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=results/lidar-sim-transfer
-icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,pgd \
+rm -rf "$OUT"
+icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,generator,pgd \
   --targets p2plane,p2point,open3d,kiss-icp,small-gicp --budgets 1 --samples 20 --batch-size 4 \
   --reference pgd --out "$OUT" --quiet
 icpbench table "$OUT" --transfer 1 --out "$OUT/transfer.md"
