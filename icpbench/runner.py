@@ -132,15 +132,25 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+#: Top-level folders that hold outputs, not inputs: changes there do not make a run "dirty".
+OUTPUT_DIRS = ("results/", "runs/")
+
+
 def git_commit() -> dict[str, Any]:
-    """The source tree's commit and whether it had uncommitted changes ("unknown" outside git)."""
+    """The source tree's commit and whether its code or config had uncommitted changes.
+
+    ``dirty`` ignores changes under :data:`OUTPUT_DIRS` (other runs writing their results while this
+    one starts must not mark it); ``dirty_paths`` lists up to 20 changed tracked paths, outputs
+    included, so a reader can judge. ("unknown" outside git.)"""
     here = Path(__file__).resolve().parent.parent
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True,
                              text=True, timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=10).stdout.strip() != ""
-        return {"commit": sha, "dirty": dirty}
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                capture_output=True, text=True, timeout=10).stdout.splitlines()
+        paths = [line[3:].strip() for line in status if line.strip()]
+        dirty = any(not p.startswith(OUTPUT_DIRS) for p in paths)
+        return {"commit": sha, "dirty": dirty, "dirty_paths": paths[:20]}
     except (OSError, subprocess.SubprocessError):
         return {"commit": "unknown", "dirty": None}
 

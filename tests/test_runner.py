@@ -139,3 +139,22 @@ def test_uniform_error_equals_budget_on_synthetic(tmp_path):
     n = df[df["attack"] == "none"]
     assert n["trans_err_xy"].max() < 0.05 and (n["disp_max"] == 0).all()
     assert torch.get_num_threads() == 1
+
+
+def test_git_dirty_ignores_output_folders(monkeypatch):
+    import subprocess
+
+    from icpbench import runner as rmod
+
+    def fake(status):
+        def run(args, **kw):
+            out = "abc123\n" if args[1] == "rev-parse" else status
+            return subprocess.CompletedProcess(args, 0, stdout=out, stderr="")
+        return run
+
+    monkeypatch.setattr(rmod.subprocess, "run", fake(" M results/table1.md\n M runs/x/a.csv\n"))
+    info = rmod.git_commit()
+    assert info["commit"] == "abc123" and info["dirty"] is False
+    assert info["dirty_paths"] == ["results/table1.md", "runs/x/a.csv"]
+    monkeypatch.setattr(rmod.subprocess, "run", fake(" M results/table1.md\n M icpbench/se3.py\n"))
+    assert rmod.git_commit()["dirty"] is True
