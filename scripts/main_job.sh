@@ -5,7 +5,7 @@
 # Writes results/table1.{md,tex,csv} and results/table1-run/{results.csv,manifest.json}.
 # The PGD oracle is left out here (about 10 s per scan and budget); see scripts/oracle.sh.
 # SAMPLES (default 48 of the 372 test scans, both passes) and the Ray executor (one worker per core;
-# EXECUTOR=local for a single process) keep it near 12 minutes on 2 cores: the sector attack's ICP
+# EXECUTOR=local for a single process) keep it at about 8 minutes on 2 cores: the sector attack's ICP
 # dominates (up to 5 s per scan at λ = 5 m, 100 iterations with KD-tree queries far off the map).
 set -euo pipefail
 cd "$(dirname "$0")/.."
