@@ -8,8 +8,7 @@ The paper reports 1.67 s per scan for generator + ICP evaluation on a V100 (Zhan
 1 torch thread):
 
 * ``precompute``: FPS, kNN groups and 3-NN interpolation weights of the clean scan (no gradient);
-* ``generator``: one forward pass of the lidar generator (shipped checkpoint when present, else an
-  untrained model of the same architecture: the cost does not depend on the weights);
+* ``generator``: one forward pass of the shipped lidar-sim generator;
 * ``icp``: the p2plane ICP (lidar preset, up to 100 iterations) on the adversarial scan;
 * ``attack+icp``: the three together, what ``icpbench run --attacks generator`` pays per scan;
 * ``pgd``: the PGD oracle (default 30 steps through a 25-iteration surrogate) on the same scan,
@@ -33,20 +32,15 @@ _MEDIANS: dict[str, float] = {}
 
 def _problem() -> dict[str, object]:
     if "batch" not in _STATE:
-        from icpbench.attacks.generator import shipped_checkpoint_dir
+        from icpbench.attacks.generator import resolve_checkpoint
         from icpbench.generator.checkpoint import load_checkpoint
-        from icpbench.generator.network import Generator, generator_config
         from icpbench.targets.p2plane import PointToPlaneICP
 
         ds = registry.datasets.get("lidar-sim")(seed=0, split="test")
         batch = Batch.from_samples([ds[0]])
         _ = batch.maps  # KD-tree of the submap, built once as in a real run
-        ckpt = shipped_checkpoint_dir("lidar-sim") / "generator.pt"
-        if ckpt.is_file():
-            model, source = load_checkpoint(ckpt).model, str(ckpt.name)
-        else:
-            model, source = Generator(generator_config("lidar", output="bounded")).eval(), "untrained"
-        _STATE.update(batch=batch, model=model, source=source,
+        ckpt = resolve_checkpoint("lidar-sim", BUDGET_M)  # the shipped checkpoint
+        _STATE.update(batch=batch, model=load_checkpoint(ckpt).model, source=ckpt.name,
                       icp=PointToPlaneICP("lidar"),
                       budget=torch.full((1,), BUDGET_M))
     return _STATE

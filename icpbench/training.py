@@ -186,9 +186,10 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     gcfg = generator_config(cfg.generator_preset,
                             **{"conditioned": conditioned, **cfg.generator_overrides})
     torch.manual_seed(cfg.seed)
-    model = Generator(gcfg).to(device)
-    if cfg.init_checkpoint is not None:
+    if cfg.init_checkpoint is not None:  # fine-tuning: the checkpoint's own config wins
         model = load_checkpoint(cfg.init_checkpoint, map_location=device).model.train()
+    else:
+        model = Generator(gcfg).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
     state_path, ckpt = out / "train_state.pt", out / "generator.pt"

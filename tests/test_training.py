@@ -4,6 +4,7 @@ attack loads it through the runner."""
 import json
 
 import pytest
+import torch
 
 from icpbench.errors import CheckpointError
 from icpbench.results import load_results
@@ -94,3 +95,21 @@ def test_per_budget_checkpoint_takes_precedence(tmp_path, monkeypatch):
     assert ga.resolve_checkpoint("lidar-sim", 5.0).name == "generator-l5.pt"
     assert ga.resolve_checkpoint("lidar-sim", 2.0).name == "generator.pt"
     assert ga.resolve_checkpoint("lidar-sim", 2.0, str(tmp_path / "x.pt")).name == "x.pt"
+
+
+def test_fine_tuning_starts_from_the_given_weights(trained, tmp_path):
+    """init_checkpoint: the model starts from the checkpoint's weights and config (not a fresh
+    initialisation), and the card records where it came from."""
+    from icpbench.generator.checkpoint import load_checkpoint
+
+    cfg, out, _ = trained
+    ft = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,
+                      pretrain_epochs=0, epochs=1, lr=0.0, init_checkpoint=str(out / "generator.pt"),
+                      dataset_params={"n_samples": 2})
+    card = train(ft, tmp_path, progress=False)
+    assert card["init_checkpoint"] == str(out / "generator.pt")
+    before, after = load_checkpoint(out / "generator.pt"), load_checkpoint(tmp_path / "generator.pt")
+    assert after.config == before.config
+    for (k, a), b in zip(after.model.state_dict().items(), before.model.state_dict().values(),
+                         strict=True):
+        assert torch.equal(a, b), k  # lr 0: the weights are exactly the initial checkpoint's
