@@ -55,6 +55,9 @@ class TrainConfig:
         batch_size, pretrain_epochs, epochs, lr, lr_step_epochs, lr_gamma, alpha, beta: optimisation.
         icp_preset: surrogate ICP settings during training (25 iterations).
         soft_dmax: smooth max-distance gate in the surrogate during training.
+        icp_backprop: how the surrogate's pose is differentiated: ``"unrolled"`` (dICP, the paper)
+            or ``"implicit"`` (implicit function theorem at the final pose; beyond the paper: the
+            surrogate can then run the evaluation's 100 iterations at the cost of a forward pass).
         seed, threads, device: reproducibility and hardware.
         max_minutes: stop after the epoch during which this wall time is exceeded (None = no limit).
         strict: beyond the paper: project every point's displacement onto its lambda-ball inside
@@ -84,6 +87,7 @@ class TrainConfig:
     beta: float = 10.0
     icp_preset: str = "lidar-train"
     soft_dmax: bool = False
+    icp_backprop: str = "unrolled"
     seed: int = 0
     threads: int = 1
     device: str = "cpu"
@@ -212,7 +216,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             for s in train_set]
     data_s = time.perf_counter() - t_data
     n_train = len({i for ids in ddp.all_gather([s.id for s in train_set], ctx) for i in ids})
-    surrogate = PointToPlaneICP(cfg.icp_preset, soft_dmax=cfg.soft_dmax)
+    surrogate = PointToPlaneICP(cfg.icp_preset, soft_dmax=cfg.soft_dmax, backprop=cfg.icp_backprop)
     rng = np.random.default_rng(cfg.seed)
     for _ in range(start_epoch):  # keep the shuffling stream aligned on resume
         rng.permutation(len(train_set))
@@ -316,6 +320,7 @@ def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
         "optimiser": {"lr": cfg.lr, "step_epochs": cfg.lr_step_epochs, "gamma": cfg.lr_gamma,
                       "alpha": cfg.alpha, "beta": cfg.beta, "batch_size": cfg.batch_size},
         "icp_preset": cfg.icp_preset,
+        "icp_backprop": cfg.icp_backprop,
         "strict_training": cfg.strict,
         "adv_per_budget": cfg.adv_per_budget,
         "init_checkpoint": cfg.init_checkpoint,

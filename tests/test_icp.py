@@ -86,6 +86,63 @@ def test_gradient_matches_finite_differences(cls):
     assert checked >= 8
 
 
+@pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
+def test_implicit_gradient_is_the_derivative_of_the_converged_pose(cls):
+    """backprop="implicit": same pose as the unrolled ICP; its gradient equals central finite
+    differences of the converged pose and the unrolled gradient once the iterations converged."""
+    s = scene_sample(300, 4_000, seed=7, noise_m=0.01)
+    settings = dict(d_max=1.5, cauchy_c=0.5, max_iterations=200, tol=1e-13)
+    implicit, unrolled = cls("lidar", backprop="implicit", **settings), cls("lidar", **settings)
+    batch = Batch.from_samples([s])
+    w = torch.tensor([1.0, -0.7, 0.3, 2.0, 1.0, -3.0], dtype=torch.float64)
+
+    def loss(target, scans):
+        reg = target.register(scans, batch.maps, batch.T_init)
+        e = pose_error_components(reg.T, batch.T_gt)
+        xi = torch.stack([e[k] for k in ("rho_x", "rho_y", "rho_z", "phi_x", "phi_y", "phi_z")], -1)
+        return (xi * w).sum(), reg
+
+    x_i = batch.scans.clone().requires_grad_(True)
+    l_i, reg = loss(implicit, x_i)
+    l_i.backward()
+    assert bool(reg.converged.all())
+    x_u = batch.scans.clone().requires_grad_(True)
+    l_u, _ = loss(unrolled, x_u)
+    l_u.backward()
+    assert float(l_i.detach()) == float(l_u.detach())  # the pose value is untouched
+    assert float((x_i.grad - x_u.grad).norm() / x_u.grad.norm()) < 1e-5
+    rng = np.random.default_rng(0)
+    eps, checked = 1e-6, 0
+    for _ in range(10):
+        i, k = int(rng.integers(0, 300)), int(rng.integers(0, 3))
+        xp, xm = batch.scans.clone(), batch.scans.clone()
+        xp[0, i, k] += eps
+        xm[0, i, k] -= eps
+        with torch.no_grad():
+            fd = float((loss(implicit, xp)[0] - loss(implicit, xm)[0]) / (2 * eps))
+        g = float(x_i.grad[0, i, k])
+        if abs(fd) < 1e-7 and abs(g) < 1e-7:
+            continue
+        assert abs(fd - g) / max(abs(fd), abs(g)) < 1e-4, (i, k, fd, g)
+        checked += 1
+    assert checked >= 6
+
+
+def test_implicit_backprop_gives_a_gradient_and_checks_its_name():
+    """The implicit mode still yields a differentiable pose (finite, non-zero gradient) and a bad
+    mode name is refused."""
+    s = scene_sample(300, 4_000, seed=3, noise_m=0.01)
+    batch = Batch.from_samples([s])
+    x = batch.scans.clone().requires_grad_(True)
+    reg = PointToPlaneICP("lidar", d_max=1.5, backprop="implicit").register(x, batch.maps,
+                                                                           batch.T_init)
+    assert reg.T.requires_grad
+    reg.T[:, :3, 3].sum().backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    with pytest.raises(InputError, match="backprop"):
+        PointToPlaneICP("lidar", backprop="one-step")
+
+
 def test_soft_gate_is_differentiable_and_close_to_hard():
     s = scene_sample(500, 5_000, seed=3, noise_m=0.01)
     batch = Batch.from_samples([s])
