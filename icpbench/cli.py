@@ -341,6 +341,12 @@ def train(
         help="Divide each sample's adversarial loss by its λ.")] = None,
     init: Annotated[str | None, typer.Option(
         help="Start from this checkpoint (fine-tuning, e.g. one model per λ).")] = None,
+    icp_preset: Annotated[str | None, typer.Option(
+        help="Surrogate ICP during training: lidar-train (25 iterations), lidar (100), ...")]
+    = None,
+    icp_backprop: Annotated[str | None, typer.Option(
+        help="unrolled (dICP, the paper) or implicit (implicit-function gradient of the final "
+             "pose; beyond the paper).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
@@ -353,7 +359,8 @@ def train(
             train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
             device=device, threads=threads, max_minutes=max_minutes,
             strict=strict or None, adv_per_budget=adv_per_budget,
-            init_checkpoint=init).items() if v is not None}
+            init_checkpoint=init, icp_preset=icp_preset,
+            icp_backprop=icp_backprop).items() if v is not None}
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets:

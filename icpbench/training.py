@@ -186,6 +186,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         write_json_atomic(cfg_path, asdict(cfg))
     w = weights(cfg.weights)
     budgets = _budgets(cfg)
+    # validates the ICP settings before any data is loaded
+    surrogate = PointToPlaneICP(cfg.icp_preset, soft_dmax=cfg.soft_dmax, backprop=cfg.icp_backprop)
     conditioned = budgets.numel() > 1
     gcfg = generator_config(cfg.generator_preset,
                             **{"conditioned": conditioned, **cfg.generator_overrides})
@@ -216,7 +218,6 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             for s in train_set]
     data_s = time.perf_counter() - t_data
     n_train = len({i for ids in ddp.all_gather([s.id for s in train_set], ctx) for i in ids})
-    surrogate = PointToPlaneICP(cfg.icp_preset, soft_dmax=cfg.soft_dmax, backprop=cfg.icp_backprop)
     rng = np.random.default_rng(cfg.seed)
     for _ in range(start_epoch):  # keep the shuffling stream aligned on resume
         rng.permutation(len(train_set))
@@ -306,8 +307,28 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     return ddp.broadcast(card, ctx)
 
 
+def lineage_card(init_checkpoint: str | Path) -> dict[str, Any]:
+    """The model card of the checkpoint a fine-tuning run started from (with its own lineage, if
+    any), stored as ``card["init_card"]`` so a fine-tuned model's card describes its whole
+    training; ``train_wall_s_total`` sums the wall times along the chain (seconds)."""
+    from icpbench.generator.checkpoint import read_checkpoint_meta
+
+    return dict(read_checkpoint_meta(init_checkpoint)[1]["card"])
+
+
 def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
           n_train: int) -> dict[str, Any]:
+    card = _own_card(cfg, epochs_done, wall_s, data_s, n_train)
+    if cfg.init_checkpoint is not None:
+        parent = lineage_card(cfg.init_checkpoint)
+        card["init_card"] = parent
+        card["train_wall_s_total"] = round(
+            wall_s + float(parent.get("train_wall_s_total", parent.get("train_wall_s", 0.0))), 1)
+    return card
+
+
+def _own_card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
+              n_train: int) -> dict[str, Any]:
     return {
         "data": {"dataset": cfg.dataset, "params": cfg.dataset_params, "split": "train",
                  "samples": n_train},

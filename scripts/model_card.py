@@ -25,11 +25,14 @@ def describe(path: Path) -> list[str]:
     out.append(f"- budgets trained [m]: {card.get('budgets_m')}; weights: {card.get('weights')}; "
                f"output: {cfg.get('output')}; conditioned: {cfg.get('conditioned')}")
     out.append(f"- epochs: {card.get('epochs_done')} (pretraining {card.get('pretrain_epochs')}); "
-               f"optimiser: {card.get('optimiser')}; ICP during training: {card.get('icp_preset')}")
-    if card.get("init_checkpoint"):
-        out.append(f"- fine-tuned from: `{Path(card['init_checkpoint']).name}` of the shared run")
+               f"optimiser: {card.get('optimiser')}; ICP during training: {card.get('icp_preset')} "
+               f"({card.get('icp_backprop', 'unrolled')} gradient)")
     out.append(f"- training wall time: {card.get('train_wall_s')} s "
                f"(+ {card.get('data_prep_s')} s index precompute) on {card.get('hardware')}")
+    if card.get("init_checkpoint"):
+        out.append(f"- fine-tuned from `{card['init_checkpoint']}`; whole chain "
+                   f"{card.get('train_wall_s_total', '?')} s of training; its stages, newest first:")
+        out += [f"  - {stage}" for stage in lineage(card.get("init_card"))]
     if card.get("notes"):
         out.append(f"- notes: {card['notes']}")
     ev = card.get("heldout_eval") or {}
@@ -38,6 +41,20 @@ def describe(path: Path) -> list[str]:
                    f"trans_err_xy {r['trans_err_xy_mean']:.3f} m over {r['converged']} converged, "
                    f"mean max displacement {r['disp_max_mean']:.3f} m")
     return out + [""]
+
+
+def lineage(card: dict | None) -> list[str]:
+    """One line per ancestor stage of a fine-tuned model (``card["init_card"]`` chain)."""
+    out = []
+    while card:
+        opt, data = card.get("optimiser") or {}, card.get("data") or {}
+        out.append(f"{card.get('epochs_done')} epoch(s) x {data.get('samples')} scans, "
+                   f"lr {opt.get('lr')}, ICP {card.get('icp_preset')} "
+                   f"({card.get('icp_backprop', 'unrolled')}), {card.get('train_wall_s')} s"
+                   + (f", from `{card['init_checkpoint']}`" if card.get("init_checkpoint") else
+                      " (from scratch)"))
+        card = card.get("init_card")
+    return out
 
 
 def main() -> None:

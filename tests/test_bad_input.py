@@ -385,6 +385,9 @@ def _cli_cases(tmp: Path, ckpt: dict) -> list[tuple[list[str], str]]:
         (["table", str(tmp / "nowhere")], "no results at"),
         *[(generator + [f"generator.checkpoint={ckpt[k]}", "--out", str(tmp / k)], needle)
           for k, needle in CHECKPOINT_ERRORS],
+        (["train", "--icp-backprop", "bogus", "--out", str(tmp / "tb")],
+         "backprop must be 'unrolled' or 'implicit'"),
+        (["train", "--icp-preset", "bogus", "--out", str(tmp / "tp")], "unknown ICP preset 'bogus'"),
     ] + ([] if torch.cuda.is_available() else
          [(["train", "--device", "cuda", "--out", str(tmp / "t")], "sees no CUDA GPU")])
 

@@ -108,6 +108,10 @@ def test_fine_tuning_starts_from_the_given_weights(trained, tmp_path):
                       dataset_params={"n_samples": 2})
     card = train(ft, tmp_path, progress=False)
     assert card["init_checkpoint"] == str(out / "generator.pt")
+    parent = load_checkpoint(out / "generator.pt").card
+    assert card["init_card"] == parent  # the lineage travels with the fine-tuned model
+    assert card["train_wall_s_total"] == pytest.approx(card["train_wall_s"]
+                                                       + parent["train_wall_s"], abs=0.11)
     before, after = load_checkpoint(out / "generator.pt"), load_checkpoint(tmp_path / "generator.pt")
     assert after.config == before.config
     for (k, a), b in zip(after.model.state_dict().items(), before.model.state_dict().values(),
