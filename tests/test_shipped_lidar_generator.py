@@ -21,6 +21,12 @@ def test_card_and_resolution():
     assert card["data"]["dataset"] == "lidar-sim" and card["data"]["split"] == "train"
     assert card["train_wall_s"] > 0 and card["epochs_done"] >= 1
     assert set(card["heldout_eval"]) == {"1", "2", "3", "4", "5"}
+    stage, total = card, 0.0  # a fine-tuned model's card holds its whole training chain
+    while stage.get("init_checkpoint"):
+        total += stage["train_wall_s"]
+        stage = stage["init_card"]
+    assert stage["epochs_done"] >= 1 and card["train_wall_s_total"] == pytest.approx(
+        total + stage["train_wall_s"], abs=0.2)
     for lam in (1.0, 2.0, 3.0, 4.0, 5.0):
         assert resolve_checkpoint("lidar-sim", lam) == CKPT
 
