@@ -10,6 +10,7 @@ lambda), so both numbers are reported and never hidden.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -150,3 +151,8 @@ class Attack(ABC):
     def settings(self) -> dict[str, Any]:
         """Settings recorded in the manifest."""
         return {"strict": self.strict, **self.params}
+
+    def fingerprint(self, budgets: Sequence[float]) -> dict[str, str]:
+        """Identities of the files this attack reads for these budgets (metres), e.g. checkpoint
+        hashes: a resumed run refuses to mix results made from different files. Default: none."""
+        return {}

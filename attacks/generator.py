@@ -14,6 +14,8 @@ or with the bounded output, where lambda scales the displacement).
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 from typing import Any, ClassVar
@@ -79,6 +81,19 @@ class GeneratorAttack(Attack):
         self._loaded: dict[Path, Any] = {}
         if checkpoint is not None:  # a missing or corrupt file is a user error: fail before the run
             self._model(0.0)
+
+    def fingerprint(self, budgets: Sequence[float]) -> dict[str, str]:
+        """SHA-256 (first 16 hex digits) of the weights and JSON of the checkpoint of each budget
+        (keyed ``"<lambda>"``), so that resuming a run after a checkpoint changed is refused."""
+        out = {}
+        for lam in budgets:
+            path = resolve_checkpoint(self.dataset, lam, self.checkpoint)
+            h = hashlib.sha256()
+            for f in (path, path.with_suffix(".json")):
+                if f.is_file():
+                    h.update(f.read_bytes())
+            out[f"{lam:g}"] = h.hexdigest()[:16]
+        return out
 
     def _model(self, budget_m: float):
         from icpbench.generator.checkpoint import load_checkpoint

@@ -238,12 +238,20 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         "platform": {"machine": platform.machine(), "system": platform.system(),
                      "processor": platform.processor(), "cpu_count": _cpu_count()},
     }
+    manifest["fingerprints"] = {n: a.fingerprint(cfg.budgets) for n, a in worker.attacks.items()}
     old = read_manifest(out_dir)
     if old is not None and not _same_config(old.get("config", {}), manifest["config"]):
         raise InputError(
             f"{out_dir} holds results of a different configuration; use a new --out "
             "(or the same command to resume)"
         )
+    if old is not None and "fingerprints" in old:  # older manifests lack them: not checked
+        changed = [n for n, fp in manifest["fingerprints"].items()
+                   if fp and old["fingerprints"].get(n) != fp]
+        if changed:
+            raise InputError(
+                f"{out_dir} holds results made with other files for attack(s) "
+                f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
     out_dir.mkdir(parents=True, exist_ok=True)
     store = ResultsStore(out_dir)
     manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}

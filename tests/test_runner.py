@@ -89,6 +89,27 @@ def test_manifest_and_config_mismatch(tmp_path):
             tmp_path, progress=False)
 
 
+def test_resume_refuses_results_of_a_changed_checkpoint(tmp_path):
+    """The manifest stores a hash of each generator checkpoint; resuming after the file changed
+    (e.g. a newly shipped model) is refused instead of silently mixing old and new results."""
+    from icpbench.generator.checkpoint import save_checkpoint
+    from icpbench.generator.network import Generator, generator_config
+
+    ckpt = tmp_path / "g.pt"
+    save_checkpoint(Generator(generator_config("objects")), ckpt)
+    cfg = RunConfig(dataset="synthetic", attacks=["generator"], targets=["p2plane"],
+                    budgets=[1.0], samples=1, dataset_params={"n_samples": 1},
+                    attack_params={"generator": {"checkpoint": str(ckpt)}})
+    run(cfg, tmp_path / "r", progress=False)
+    fp = read_manifest(tmp_path / "r")["fingerprints"]["generator"]
+    assert set(fp) == {"1"} and len(fp["1"]) == 16
+    run(cfg, tmp_path / "r", progress=False)  # same file: resumes
+    torch.manual_seed(1)
+    save_checkpoint(Generator(generator_config("objects")), ckpt)  # other weights, same path
+    with pytest.raises(InputError, match="other files for attack.*generator"):
+        run(cfg, tmp_path / "r", progress=False)
+
+
 class _Crashing(Attack):
     name = "crashing-test-attack"
 
