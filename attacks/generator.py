@@ -84,10 +84,15 @@ class GeneratorAttack(Attack):
 
     def fingerprint(self, budgets: Sequence[float]) -> dict[str, str]:
         """SHA-256 (first 16 hex digits) of the weights and JSON of the checkpoint of each budget
-        (keyed ``"<lambda>"``), so that resuming a run after a checkpoint changed is refused."""
+        (keyed ``"<lambda>"``; ``"none"`` where no checkpoint resolves), so that resuming a run after a
+        checkpoint changed is refused."""
         out = {}
         for lam in budgets:
-            path = resolve_checkpoint(self.dataset, lam, self.checkpoint)
+            try:
+                path = resolve_checkpoint(self.dataset, lam, self.checkpoint)
+            except CheckpointError:  # reported per unit when the attack runs, as before
+                out[f"{lam:g}"] = "none"
+                continue
             h = hashlib.sha256()
             for f in (path, path.with_suffix(".json")):
                 if f.is_file():
