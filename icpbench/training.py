@@ -307,20 +307,16 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     return ddp.broadcast(card, ctx)
 
 
-def lineage_card(init_checkpoint: str | Path) -> dict[str, Any]:
-    """The model card of the checkpoint a fine-tuning run started from (with its own lineage, if
-    any), stored as ``card["init_card"]`` so a fine-tuned model's card describes its whole
-    training; ``train_wall_s_total`` sums the wall times along the chain (seconds)."""
-    from icpbench.generator.checkpoint import read_checkpoint_meta
-
-    return dict(read_checkpoint_meta(init_checkpoint)[1]["card"])
-
-
 def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
           n_train: int) -> dict[str, Any]:
+    """The model card; a fine-tuned model also carries the card of the checkpoint it started from
+    (``init_card``, with that one's own lineage) and ``train_wall_s_total``, the wall time summed
+    along the chain (seconds)."""
     card = _own_card(cfg, epochs_done, wall_s, data_s, n_train)
     if cfg.init_checkpoint is not None:
-        parent = lineage_card(cfg.init_checkpoint)
+        from icpbench.generator.checkpoint import read_checkpoint_meta
+
+        parent = read_checkpoint_meta(cfg.init_checkpoint)[1]["card"]
         card["init_card"] = parent
         card["train_wall_s_total"] = round(
             wall_s + float(parent.get("train_wall_s_total", parent.get("train_wall_s", 0.0))), 1)

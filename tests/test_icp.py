@@ -51,19 +51,25 @@ def test_batch_equals_one_by_one(cls):
         assert int(reg_b.iterations[i]) == int(reg_1.iterations[0])
 
 
+def _weighted_pose_error(target, batch, scans):
+    """A fixed weighted sum of the six pose-error components of ``target`` on ``scans``, and the
+    registration (the scalar whose gradient the finite-difference tests check)."""
+    reg = target.register(scans, batch.maps, batch.T_init)
+    e = pose_error_components(reg.T, batch.T_gt)
+    xi = torch.stack([e[k] for k in ("rho_x", "rho_y", "rho_z", "phi_x", "phi_y", "phi_z")], -1)
+    w = torch.tensor([1.0, -0.7, 0.3, 2.0, 1.0, -3.0], dtype=torch.float64)
+    return (xi * w).sum(), reg
+
+
 @pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
 def test_gradient_matches_finite_differences(cls):
     """d(pose error)/d(scan points), float64, hard d_max filter, association fixed by small eps."""
     s = scene_sample(300, 4_000, seed=7, noise_m=0.01)
     tgt = cls("lidar", d_max=1.5, cauchy_c=0.5, max_iterations=8, tol=1e-14)
     batch = Batch.from_samples([s])
-    w = torch.tensor([1.0, -0.7, 0.3, 2.0, 1.0, -3.0], dtype=torch.float64)
 
     def loss(scans):
-        reg = tgt.register(scans, batch.maps, batch.T_init)
-        e = pose_error_components(reg.T, batch.T_gt)
-        xi = torch.stack([e[k] for k in ("rho_x", "rho_y", "rho_z", "phi_x", "phi_y", "phi_z")], -1)
-        return (xi * w).sum()
+        return _weighted_pose_error(tgt, batch, scans)[0]
 
     x = batch.scans.clone().requires_grad_(True)
     loss(x).backward()
@@ -94,13 +100,9 @@ def test_implicit_gradient_is_the_derivative_of_the_converged_pose(cls):
     settings = dict(d_max=1.5, cauchy_c=0.5, max_iterations=200, tol=1e-13)
     implicit, unrolled = cls("lidar", backprop="implicit", **settings), cls("lidar", **settings)
     batch = Batch.from_samples([s])
-    w = torch.tensor([1.0, -0.7, 0.3, 2.0, 1.0, -3.0], dtype=torch.float64)
 
     def loss(target, scans):
-        reg = target.register(scans, batch.maps, batch.T_init)
-        e = pose_error_components(reg.T, batch.T_gt)
-        xi = torch.stack([e[k] for k in ("rho_x", "rho_y", "rho_z", "phi_x", "phi_y", "phi_z")], -1)
-        return (xi * w).sum(), reg
+        return _weighted_pose_error(target, batch, scans)
 
     x_i = batch.scans.clone().requires_grad_(True)
     l_i, reg = loss(implicit, x_i)
