@@ -64,7 +64,9 @@ class TrainConfig:
             the training loop (differentiably), so the model learns attacks that respect the budget
             exactly; the generator attack then applies the same projection (recorded in the card).
         init_checkpoint: start from these weights (fine-tuning; the generator settings are taken
-            from its JSON, ``generator_preset``/``generator_overrides`` are then ignored).
+            from its JSON, ``generator_preset``/``generator_overrides`` are then ignored, except
+            ``global_feature=True``, which adds the zero-initialised scan descriptor to a model
+            trained without it, see :func:`~icpbench.generator.network.add_global_feature`).
         adv_per_budget: divide each sample's adversarial loss by its lambda, so that with several
             budgets the large ones (whose errors are larger) do not dominate the gradient.
     """
@@ -176,7 +178,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
 def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, progress: bool,
            log: Callable[[str], None] | None) -> dict[str, Any]:
     from icpbench.generator.checkpoint import load_checkpoint, save_checkpoint
-    from icpbench.generator.network import Generator, generator_config
+    from icpbench.generator.network import Generator, add_global_feature, generator_config
 
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "train_config.json"
@@ -194,6 +196,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     torch.manual_seed(cfg.seed)
     if cfg.init_checkpoint is not None:  # fine-tuning: the checkpoint's own config wins
         model = load_checkpoint(cfg.init_checkpoint, map_location=device).model.train()
+        if cfg.generator_overrides.get("global_feature") is True and not model.config.global_feature:
+            model = add_global_feature(model)
     else:
         model = Generator(gcfg).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)

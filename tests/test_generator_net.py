@@ -18,7 +18,12 @@ from icpbench.generator.geometry import (
     compute_geometry_batch,
     fps_start_index,
 )
-from icpbench.generator.network import Generator, GeneratorConfig, generator_config
+from icpbench.generator.network import (
+    Generator,
+    GeneratorConfig,
+    add_global_feature,
+    generator_config,
+)
 
 torch.set_num_threads(1)
 
@@ -203,6 +208,38 @@ def test_permuting_the_points_permutes_the_output():
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 
 
+def test_global_feature_is_one_vector_per_scan_and_starts_as_a_no_op():
+    """global_feature: the scan's max-pooled F4 descriptor shifts every point's first head layer
+    alike; added to a trained model (zero map) it changes nothing, and it stays permutation
+    consistent and batch independent."""
+    G = randomised(generator_config("objects", conditioned=True), seed=2)
+    x = torch.as_tensor(np.stack([cloud(30), cloud(31)]))
+    geo, lam = G.precompute(x), torch.tensor([0.05, 0.1])
+    W = add_global_feature(G)
+    assert W.config.global_feature and W.glob is not None and not G.config.global_feature
+    assert W.glob.in_features == 512 and W.glob.out_features == 256
+    with torch.no_grad():
+        torch.testing.assert_close(W(x, geo, lam), G(x, geo, lam), rtol=0, atol=0)
+        torch.nn.init.normal_(W.glob.weight, std=0.5)
+        y = W(x, geo, lam)
+        # = the model without the feature whose first head bias is shifted by glob(max_j F4[:, j])
+        for i in range(2):
+            g = W.glob(W.encode(x[i:i + 1], geo.select([i]))[3].max(-1).values)[0]
+            S = randomised(generator_config("objects", conditioned=True), seed=2)
+            S.head[0].bias += g
+            torch.testing.assert_close(S(x[i:i + 1], geo.select([i]), lam[i:i + 1]), y[i:i + 1],
+                                       rtol=1e-5, atol=1e-6)
+    assert (y - G(x, geo, lam)).abs().max() > 1e-4  # the descriptor now matters
+    perm = torch.as_tensor(np.random.default_rng(4).permutation(N))
+    with torch.no_grad():
+        yp = W(x[:1, perm], W.precompute(x[:1, perm]), lam[:1])
+        one = W(x[1:], geo.select([1]), lam[1:])
+    torch.testing.assert_close(yp, y[:1, perm], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(one, y[1:], rtol=1e-5, atol=1e-6)
+    with pytest.raises(InputError, match="already has the global feature"):
+        add_global_feature(W)
+
+
 def test_samples_are_independent_of_the_batch():
     G = randomised(generator_config("objects"))
     x = torch.as_tensor(np.stack([cloud(10), cloud(11), cloud(12)]))
@@ -289,6 +326,10 @@ def test_config_json_round_trip_and_validation():
     assert cfg.geometry.level_sizes(10_000) == (10_000, 3333, 833, 208)
     with pytest.raises(InputError, match="lacks key"):
         GeneratorConfig.from_dict({"a": 2})
+    old = {k: v for k, v in cfg.to_dict().items() if k != "global_feature"}  # pre-flag JSONs
+    assert GeneratorConfig.from_dict(old) == cfg and not cfg.global_feature
+    wide = cfg.with_(global_feature=True)
+    assert GeneratorConfig.from_dict(json.loads(wide.to_json())) == wide
     with pytest.raises(InputError, match="unknown key"):
         GeneratorConfig.from_dict({**cfg.to_dict(), "depth": 5})
     with pytest.raises(InputError, match="norm must be one of"):

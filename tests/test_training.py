@@ -117,3 +117,20 @@ def test_fine_tuning_starts_from_the_given_weights(trained, tmp_path):
     for (k, a), b in zip(after.model.state_dict().items(), before.model.state_dict().values(),
                          strict=True):
         assert torch.equal(a, b), k  # lr 0: the weights are exactly the initial checkpoint's
+
+
+def test_fine_tuning_can_add_the_global_feature(trained, tmp_path):
+    """generator_overrides global_feature=True with init_checkpoint: the fine-tuned model has the
+    scan descriptor, every old weight is carried over, and training moves the new map."""
+    from icpbench.generator.checkpoint import load_checkpoint
+
+    _, out, _ = trained
+    ft = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,
+                      pretrain_epochs=0, epochs=1, lr=1e-3, init_checkpoint=str(out / "generator.pt"),
+                      generator_overrides={"global_feature": True}, dataset_params={"n_samples": 2})
+    train(ft, tmp_path, progress=False)
+    before, after = load_checkpoint(out / "generator.pt"), load_checkpoint(tmp_path / "generator.pt")
+    assert after.config == before.config.with_(global_feature=True)
+    assert set(after.model.state_dict()) - set(before.model.state_dict()) == {"glob.weight",
+                                                                              "glob.bias"}
+    assert after.model.glob.weight.abs().max() > 0  # started at zero, received gradients
