@@ -86,6 +86,8 @@ class GeneratorAttack(Attack):
         """SHA-256 (first 16 hex digits) of the weights and JSON of the checkpoint of each budget
         (keyed ``"<lambda>"``; ``"none"`` where no checkpoint resolves), so that resuming a run after a
         checkpoint changed is refused."""
+        from icpbench.generator.checkpoint import config_path
+
         out = {}
         for lam in budgets:
             try:
@@ -94,7 +96,7 @@ class GeneratorAttack(Attack):
                 out[f"{lam:g}"] = "none"
                 continue
             h = hashlib.sha256()
-            for f in (path, path.with_suffix(".json")):
+            for f in (path, config_path(path)):
                 if f.is_file():
                     h.update(f.read_bytes())
             out[f"{lam:g}"] = h.hexdigest()[:16]

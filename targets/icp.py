@@ -186,9 +186,7 @@ def icp(
             H_last = torch.where(active[:, None, None], H.detach(), H_last)
             delta = _solve(H, g, cfg)
             delta = torch.where(active[:, None], delta, torch.zeros((), dtype=dtype))
-            dT = se3_exp(delta)
-            R = dT[:, :3, :3] @ R
-            t = (dT[:, :3, :3] @ t[..., None])[..., 0] + dT[:, :3, 3]
+            R, t = _left_update(delta, R, t)
             step = torch.linalg.norm(delta.detach(), dim=-1)
             newly = active & (step < cfg.tol)
             iterations = torch.where(newly, torch.full_like(iterations, it + 1), iterations)
@@ -292,18 +290,22 @@ def _implicit_pose(p: torch.Tensor, R0: torch.Tensor, t0: torch.Tensor, maps: Se
     x = p.detach()
 
     def g_of(dl: torch.Tensor) -> torch.Tensor:
-        dT = se3_exp(dl)
-        Rd = dT[:, :3, :3] @ R0
-        td = (dT[:, :3, :3] @ t0[..., None])[..., 0] + dT[:, :3, 3]
-        return _linearise(x, Rd, td, maps, map_t, finite, orders, on, query_bound, cfg, mode)[1]
+        return _linearise(x, *_left_update(dl, R0, t0), maps, map_t, finite, orders, on,
+                          query_bound, cfg, mode)[1]
 
     with torch.enable_grad():
         A = torch.autograd.functional.jacobian(g_of, torch.zeros(B, 6, dtype=p.dtype))  # (B,6,B,6)
     A = A[torch.arange(B), :, torch.arange(B), :]  # per-sample blocks (B, 6, 6)
     _, g, _ = _linearise(p, R0, t0, maps, map_t, finite, orders, on, query_bound, cfg, mode)
     delta = _solve(A, g, cfg)
-    dT = se3_exp(delta - delta.detach())
-    return dT[:, :3, :3] @ R0, (dT[:, :3, :3] @ t0[..., None])[..., 0] + dT[:, :3, 3]
+    return _left_update(delta - delta.detach(), R0, t0)
+
+
+def _left_update(delta: torch.Tensor, R: torch.Tensor, t: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pose ``exp(delta) T`` for twists delta (B, 6) and T = (R (B, 3, 3), t (B, 3))."""
+    dT = se3_exp(delta)
+    return dT[:, :3, :3] @ R, (dT[:, :3, :3] @ t[..., None])[..., 0] + dT[:, :3, 3]
 
 
 def _solve(H: torch.Tensor, g: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:

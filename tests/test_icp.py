@@ -61,6 +61,27 @@ def _weighted_pose_error(target, batch, scans):
     return (xi * w).sum(), reg
 
 
+def _assert_central_differences(loss, scans, grad, *, draws, rtol, min_checked):
+    """Compare ``grad`` (1, N, 3) with central differences (eps 1e-6) of the scalar ``loss(scans)``
+    at ``draws`` random coordinates of the first 300 points (seed 0); pairs that are both ~0 are
+    skipped, at least ``min_checked`` must be compared."""
+    rng = np.random.default_rng(0)
+    eps, checked = 1e-6, 0
+    for _ in range(draws):
+        i, k = int(rng.integers(0, 300)), int(rng.integers(0, 3))
+        xp, xm = scans.clone(), scans.clone()
+        xp[0, i, k] += eps
+        xm[0, i, k] -= eps
+        with torch.no_grad():
+            fd = float((loss(xp) - loss(xm)) / (2 * eps))
+        g = float(grad[0, i, k])
+        if abs(fd) < 1e-7 and abs(g) < 1e-7:
+            continue
+        assert abs(fd - g) / max(abs(fd), abs(g)) < rtol, (i, k, fd, g)
+        checked += 1
+    assert checked >= min_checked
+
+
 @pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
 def test_gradient_matches_finite_differences(cls):
     """d(pose error)/d(scan points), float64, hard d_max filter, association fixed by small eps."""
@@ -73,23 +94,7 @@ def test_gradient_matches_finite_differences(cls):
 
     x = batch.scans.clone().requires_grad_(True)
     loss(x).backward()
-    g = x.grad
-    rng = np.random.default_rng(0)
-    eps = 1e-6
-    checked = 0
-    for _ in range(12):
-        i, k = int(rng.integers(0, 300)), int(rng.integers(0, 3))
-        xp, xm = batch.scans.clone(), batch.scans.clone()
-        xp[0, i, k] += eps
-        xm[0, i, k] -= eps
-        with torch.no_grad():
-            fd = (loss(xp) - loss(xm)) / (2 * eps)
-        if abs(fd) < 1e-7 and abs(g[0, i, k]) < 1e-7:
-            continue
-        rel = abs(fd - g[0, i, k]) / max(abs(fd), abs(g[0, i, k]))
-        assert rel < 1e-3, (i, k, float(fd), float(g[0, i, k]))
-        checked += 1
-    assert checked >= 8
+    _assert_central_differences(loss, batch.scans, x.grad, draws=12, rtol=1e-3, min_checked=8)
 
 
 @pytest.mark.parametrize("cls", [PointToPlaneICP, PointToPointICP])
@@ -113,21 +118,8 @@ def test_implicit_gradient_is_the_derivative_of_the_converged_pose(cls):
     l_u.backward()
     assert float(l_i.detach()) == float(l_u.detach())  # the pose value is untouched
     assert float((x_i.grad - x_u.grad).norm() / x_u.grad.norm()) < 1e-5
-    rng = np.random.default_rng(0)
-    eps, checked = 1e-6, 0
-    for _ in range(10):
-        i, k = int(rng.integers(0, 300)), int(rng.integers(0, 3))
-        xp, xm = batch.scans.clone(), batch.scans.clone()
-        xp[0, i, k] += eps
-        xm[0, i, k] -= eps
-        with torch.no_grad():
-            fd = float((loss(implicit, xp)[0] - loss(implicit, xm)[0]) / (2 * eps))
-        g = float(x_i.grad[0, i, k])
-        if abs(fd) < 1e-7 and abs(g) < 1e-7:
-            continue
-        assert abs(fd - g) / max(abs(fd), abs(g)) < 1e-4, (i, k, fd, g)
-        checked += 1
-    assert checked >= 6
+    _assert_central_differences(lambda scans: loss(implicit, scans)[0], batch.scans, x_i.grad,
+                                draws=10, rtol=1e-4, min_checked=6)
 
 
 def test_implicit_backprop_gives_a_gradient_and_checks_its_name():
