@@ -160,7 +160,8 @@ def pose_error(T_hat: torch.Tensor, T_gt: torch.Tensor) -> torch.Tensor:
 
 
 def pose_error_components(T_hat: torch.Tensor, T_gt: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Reported components of DESIGN.md §2 (each (...,)): rho_*, phi_*, and the norms
+    """Reported pose-error components (each (...,); docs/architecture.md, "Frames, units and pose
+    error"): rho_*, phi_*, and the norms
     ``trans_err_xy = ||rho_xy||`` (Table 1), ``trans_err = ||rho||``, ``rot_err = ||phi||``,
     ``yaw_err = |phi_z|``."""
     xi = pose_error(T_hat, T_gt)

@@ -2,7 +2,8 @@
 
 Method of Laconte, Lisus and Barfoot, "Toward Certifying Maps for Safe Registration-based
 Localization Under Adverse Conditions", IEEE RA-L 2024 (arXiv 2309.04251), as reconstructed in
-``research/analytic_sector.md`` and used as the "Sector" baseline by Zhang et al. (ICRA 2025).
+docs/methods.md ("Analytic sector attack") and used as the "Sector" baseline by Zhang et al.
+(ICRA 2025).
 
 Model (one Gauss-Newton step from the true pose, known association, no robust kernel):
 
@@ -22,7 +23,8 @@ Pose-error frame (``frame`` argument):
 * ``"map"`` (default): ``xi = log(T_hat inv(T_gt))`` = [rho, phi] in the map frame, exactly the
   harness's pose error (:func:`icpbench.se3.pose_error`) and the left-perturbation update of our
   ICP (``T <- exp(delta^) T``): rows ``a_i = [n_i, q_i x n_i]``. For the lidar datasets the map is
-  expressed in the true vehicle frame (DESIGN.md §2), so component 0 (``rho_x``) is longitudinal
+  expressed in the true vehicle frame (docs/architecture.md, "Frames, units and pose error"), so
+  component 0 (``rho_x``) is longitudinal
   and 1 (``rho_y``) lateral, up to the small random init offset.
 * ``"sensor"``: ``xi_s = log(inv(T_gt) T_hat)`` in the true sensor frame (the frame the research
   note recommends): rows ``[R^T n_i, p_i x R^T n_i]``. To first order ``xi = Ad(T_gt) xi_s``.

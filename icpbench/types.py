@@ -1,6 +1,7 @@
 """Core data types shared by datasets, attacks, targets and the runner.
 
-Frames and units (DESIGN.md §2): the *scan* P (N, 3) lives in the sensor frame and is registered to
+Frames and units (docs/architecture.md, "Frames, units and pose error"): the *scan* P (N, 3) lives
+in the sensor frame and is registered to
 the *map* Q (M, 3) in the map frame. ``T_gt`` maps scan-frame points into the map frame (the paper's
 T_QP). Metres and radians throughout.
 """

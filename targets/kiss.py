@@ -23,7 +23,7 @@ KISS setting             default derived from the preset
 ``voxel_size``           ``cfg.d_max / 5``: ``lidar`` 1.0 m (KISS's own choice for 100 m sensors),
                          ``objects`` 0.06. KISS looks for neighbours only in the 27 voxels around a
                          query, so whatever ``max_corr`` is, one iteration reaches 1-2 voxels: the
-                         voxel bounds the capture range (``research/targets.md`` §2.2). The ratio 5
+                         voxel bounds the capture range (docs/methods.md, "Black-box targets"). The ratio 5
                          keeps KISS's lidar voxel; on ``objects`` voxels of 0.05-0.15 all registered
                          the clean test split to a median 0.003, the lidar-scale settings (voxel 1,
                          kernel 1) only to 0.018. The voxel also thins the map: KISS keeps at most

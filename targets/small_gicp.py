@@ -41,7 +41,7 @@ Measured with the defaults (GICP, 1 thread): ``lidar`` on :func:`icpbench.synthe
 ``objects`` test split gives a median 0.006 (p2plane: 0.003; the covariances of 20 neighbours of
 a scan with 0.025 noise are biased) in 3-11 iterations.
 
-Guards against known failures of small_gicp 1.0.1 (measured, see ``research/targets.md`` §5):
+Guards against known failures of small_gicp 1.0.1 (measured; docs/methods.md, "Black-box targets"):
 
 * an **empty map segfaults** the process: :meth:`prepare` rejects maps with fewer than 6 points (and
   NaN/Inf map points) with :class:`~icpbench.errors.InputError`;
@@ -51,7 +51,7 @@ Guards against known failures of small_gicp 1.0.1 (measured, see ``research/targ
   count as outliers. Fewer than ``min_correspondences`` finite points give status
   ``too_few_correspondences`` with ``T = T_init``.
 
-Note (``research/targets.md`` §6): small_gicp's PLANE_ICP minimises the element-wise product
+Note (docs/methods.md, "Black-box targets"): small_gicp's PLANE_ICP minimises the element-wise product
 ``n * r`` (3 residuals per point), not the textbook ``(n . r)^2`` of Open3D and our ``p2plane``.
 """
 

@@ -17,7 +17,7 @@ Pose of a row, as in the devkit: ``T_enu_lidar = [[C, (x, y, z)], [0, 1]]`` with
 
 Frames: samples use a *vehicle* frame V, the lidar frame turned about its z axis so that x points
 forward (forward in the lidar frame is ``R_applanix_lidar^T e_y``), so pose errors are
-longitudinal/lateral as DESIGN.md §2 asks.
+longitudinal/lateral (docs/architecture.md, "Frames, units and pose error").
 
 Protocol (Zhang et al., ICRA 2025, §IV-A): the *teach* drive gives keyframes every
 ``keyframe_spacing_m``; each *repeat* drive gives a live scan every ``sample_spacing_m`` travelled.

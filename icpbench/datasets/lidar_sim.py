@@ -21,7 +21,8 @@ ground truth is exact:
 * sample (:func:`~icpbench.datasets.submaps.make_sample`): the live scan subsampled to
   ``n_points`` and the vertex submap, both in the *true vehicle frame of the live scan* (x forward
   along the route, y left, z up; origin at the lidar), so pose errors ``rho_x``/``rho_y`` are
-  longitudinal/lateral (DESIGN.md §2). The scan is then moved by the paper's random offset
+  longitudinal/lateral (docs/architecture.md, "Frames, units and pose error"). The scan is then
+  moved by the paper's random offset
   (uniform +-0.3 m, +-10 deg on all axes): ``T_gt`` maps scan->map and ``T_init`` is the identity.
 
 Train and test splits are disjoint sets of repeat passes. Generated scans and submaps are cached

@@ -2,7 +2,8 @@
 
 The JSON file holds the format tag, the :class:`~icpbench.generator.network.GeneratorConfig` needed
 to rebuild the network, and a free-form *model card* (training data, budget, loss weights, epochs,
-wall time, resulting Table 1 numbers, ...; DESIGN.md §5). Weights are loaded with
+wall time, resulting Table 1 numbers, ...; docs/architecture.md, "Training and checkpoints").
+Weights are loaded with
 ``torch.load(path, weights_only=True)``, which refuses pickled Python objects, so opening a
 checkpoint never runs code from the file. Every failure raises
 :class:`~icpbench.errors.CheckpointError` saying which file is wrong and how.

@@ -15,7 +15,7 @@ Zhou et al. CVPR 2020, without its label inputs):
 All sampling/grouping indices come from :mod:`icpbench.generator.geometry` (computed once from the
 clean scan), so a forward pass is gathers and matrix products only.
 
-Design choices (the paper does not state them; see also research/dicp_pointnet.md §B-C):
+Design choices (the paper does not state them; see also docs/methods.md, "Generator design"):
 
 * **Residual output** (default, ``output="residual"``): ``X_adv = X + offset_scale_m * h`` with the
   last convolution initialised to zero, so an untrained generator returns the clean scan exactly.
