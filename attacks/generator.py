@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from icpbench.attacks.base import Attack
+from icpbench.attacks.base import Attack, project_to_ball
 from icpbench.errors import CheckpointError
 from icpbench.types import Batch
 
@@ -131,8 +131,5 @@ class GeneratorAttack(Attack):
             # strict training: the model was trained behind this projection, so apply it here too;
             # bounded output: |displacement| < lambda already, the projection only removes float32
             # rounding at saturation (|u| = 1.0 in float32)
-            from icpbench.training import project_per_sample
-
-            adv = project_per_sample(batch.scans, adv,
-                                     torch.full((x.shape[0],), float(budget_m), dtype=adv.dtype))
+            adv = project_to_ball(batch.scans, adv, float(budget_m))
         return adv

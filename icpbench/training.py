@@ -32,6 +32,7 @@ import torch
 
 from icpbench import distributed as ddp
 from icpbench import registry
+from icpbench.attacks.base import project_to_ball
 from icpbench.errors import InputError
 from icpbench.losses import adversarial_loss, reconstruction_loss, weights
 from icpbench.progress import progress_bar
@@ -151,14 +152,6 @@ def _budgets(cfg: TrainConfig) -> torch.Tensor:
     return b
 
 
-def project_per_sample(x: torch.Tensor, x_adv: torch.Tensor, budget: torch.Tensor) -> torch.Tensor:
-    """Differentiable projection of each point's displacement (B, N, 3) onto the ball of radius
-    ``budget[b]`` (B,) of its sample."""
-    d = x_adv - x
-    norm = torch.sqrt((d * d).sum(-1, keepdim=True) + 1e-12)
-    return x + d * torch.clamp(budget[:, None, None] / norm, max=1.0)
-
-
 def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
           log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Train (or resume) a generator into ``out_dir``; return the model card.
@@ -250,7 +243,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
             x_adv = net(x, geo, lam.to(torch.float32).to(device) if model.needs_budget else None)
             if cfg.strict:
-                x_adv = project_per_sample(x, x_adv, lam.to(x.dtype).to(device))
+                x_adv = project_to_ball(x, x_adv, lam.to(x.dtype).to(device))
             l_rec = reconstruction_loss(x.double(), x_adv.double(), lam.to(device)).mean()
             if alpha > 0:
                 reg = surrogate.register(x_adv.double().cpu(), batch.maps, batch.T_init)

@@ -56,6 +56,23 @@ def test_bad_budgets_raise(batch, bad):
         UniformTranslationAttack().run(batch, bad)
 
 
+def test_project_to_ball_per_sample_budget_is_differentiable():
+    clean = torch.zeros(2, 3, 3, dtype=torch.float64)
+    adv = torch.tensor([[[3.0, 0, 0], [0, 0.5, 0], [0, 0, 0]],
+                        [[3.0, 0, 0], [0, 0.5, 0], [0, 0, 0]]], dtype=torch.float64, requires_grad=True)
+    proj = project_to_ball(clean, adv, torch.tensor([1.0, 0.25], dtype=torch.float64))
+    assert torch.allclose(torch.linalg.norm(proj, dim=-1).detach(),
+                          torch.tensor([[1.0, 0.5, 0.0], [0.25, 0.25, 0.0]], dtype=torch.float64))
+    # a float budget gives the same result as a tensor holding it for every sample
+    assert torch.equal(project_to_ball(clean, adv, 1.0)[0], proj[0])
+    proj.sum().backward()
+    assert torch.isfinite(adv.grad).all()
+    assert torch.equal(adv.grad[:, 2], torch.ones(2, 3, dtype=torch.float64))  # identity inside the ball
+    assert adv.grad[0, 0, 0].item() == pytest.approx(0.0)  # radial component clipped on the sphere
+    with pytest.raises(InputError, match="shape"):
+        project_to_ball(clean, adv, torch.tensor([1.0, 2.0, 3.0]))
+
+
 def test_strict_mode_projects_and_keeps_raw_audit():
     clean = torch.zeros(1, 4, 3, dtype=torch.float64)
     adv = torch.tensor([[[3.0, 0, 0], [0, 0.5, 0], [0, 0, -2], [1, 1, 1]]], dtype=torch.float64)

@@ -38,7 +38,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 import fpsample
@@ -281,8 +281,3 @@ def compute_geometry_batch(scans: np.ndarray | torch.Tensor | Sequence[np.ndarra
     if len(scans) == 0:
         raise InputError("scans is empty (0 samples)")
     return Geometry.stack([compute_geometry(s, config) for s in scans])
-
-
-def config_fields() -> tuple[str, ...]:
-    """Names of the :class:`GeometryConfig` fields (used by the generator config)."""
-    return tuple(f.name for f in fields(GeometryConfig))
