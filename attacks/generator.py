@@ -123,7 +123,12 @@ class GeneratorAttack(Attack):
         geo = model.precompute(batch.scans.to(torch.float32)).to(self.device)
         budget = (torch.full((x.shape[0],), float(budget_m), device=self.device)
                   if model.needs_budget else None)
-        adv = model(x, geo, budget)
+        prior = None
+        if model.needs_prior:  # analytic channels from the map and the true pose (sector model)
+            from icpbench.generator.prior import sector_prior_batch
+
+            prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps).to(self.device)
+        adv = model(x, geo, budget, prior)
         # the network runs in float32; add its displacement to the scans in their own precision, so
         # that rounding the input to float32 (~2e-6 m at 40 m) does not count as a displacement
         adv = batch.scans + (adv - x).to("cpu", batch.scans.dtype)

@@ -34,6 +34,7 @@ from icpbench import distributed as ddp
 from icpbench import registry
 from icpbench.attacks.base import project_to_ball
 from icpbench.errors import InputError
+from icpbench.generator.prior import sector_prior, sector_prior_batch
 from icpbench.losses import adversarial_loss, reconstruction_loss, weights
 from icpbench.progress import progress_bar
 from icpbench.results import write_json_atomic
@@ -171,7 +172,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
 def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, progress: bool,
            log: Callable[[str], None] | None) -> dict[str, Any]:
     from icpbench.generator.checkpoint import load_checkpoint, save_checkpoint
-    from icpbench.generator.network import Generator, add_global_feature, generator_config
+    from icpbench.generator.network import Generator, add_global_feature, add_prior, generator_config
 
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "train_config.json"
@@ -191,6 +192,9 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         model = load_checkpoint(cfg.init_checkpoint, map_location=device).model.train()
         if cfg.generator_overrides.get("global_feature") is True and not model.config.global_feature:
             model = add_global_feature(model)
+        if cfg.generator_overrides.get("prior", "none") != "none" and not model.needs_prior:
+            model = add_prior(model, cfg.generator_overrides["prior"],
+                              float(cfg.generator_overrides.get("prior_gain", 2.0)))
     else:
         model = Generator(gcfg).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
@@ -213,6 +217,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     train_set = _load_split(cfg, "train", cfg.train_samples, ctx)
     geos = [model.precompute(torch.as_tensor(s.scan[None], dtype=torch.float32))
             for s in train_set]
+    priors = [_prior(model, s) for s in train_set]
     data_s = time.perf_counter() - t_data
     n_train = len({i for ids in ddp.all_gather([s.id for s in train_set], ctx) for i in ids})
     rng = np.random.default_rng(cfg.seed)
@@ -241,7 +246,9 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             x = batch.scans.to(torch.float32).to(device)
             geo = Geometry.stack([geos[i] for i in idx]).to(device)
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
-            x_adv = net(x, geo, lam.to(torch.float32).to(device) if model.needs_budget else None)
+            prior = None if priors[0] is None else torch.cat([priors[i] for i in idx]).to(device)
+            x_adv = net(x, geo, lam.to(torch.float32).to(device) if model.needs_budget else None,
+                        prior)
             if cfg.strict:
                 x_adv = project_to_ball(x, x_adv, lam.to(x.dtype).to(device))
             l_rec = reconstruction_loss(x.double(), x_adv.double(), lam.to(device)).mean()
@@ -304,6 +311,17 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     return ddp.broadcast(card, ctx)
 
 
+def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
+    """Prior channels (1, N, 8) of one training sample for prior models (else None); computed
+    once per scan, like the index precompute."""
+    if not model.needs_prior:
+        return None
+    from icpbench.mapindex import MapIndex
+
+    return torch.as_tensor(sector_prior(sample.scan, sample.T_gt,
+                                        MapIndex(sample.map, sample.map_normals)))[None]
+
+
 def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
           n_train: int) -> dict[str, Any]:
     """The model card; a fine-tuned model also carries the card of the checkpoint it started from
@@ -357,9 +375,12 @@ def evaluate(cfg: TrainConfig, ckpt: Path, *, progress: bool = False) -> dict[st
             x = batch.scans.to(torch.float32)
             with torch.no_grad():
                 geo = lg.model.precompute(x)
+                prior = None
+                if lg.model.needs_prior:
+                    prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps).to(cfg.device)
                 adv = lg.model(x.to(cfg.device), geo.to(cfg.device),
                                torch.full((len(batch),), float(lam)) if lg.model.needs_budget
-                               else None).cpu().double()
+                               else None, prior).cpu().double()
                 reg = target.register(adv, batch.maps, batch.T_init)
             e = pose_error_components(reg.T, batch.T_gt)
             errs += [float(v) for v, c in zip(e["trans_err_xy"], reg.converged, strict=True) if c]

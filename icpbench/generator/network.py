@@ -80,9 +80,11 @@ from torch import Tensor, nn
 
 from icpbench.errors import InputError
 from icpbench.generator.geometry import Geometry, GeometryConfig, compute_geometry_batch
+from icpbench.generator.prior import PRIOR_CHANNELS
 
 Norm = Literal["group", "batch", "none"]
 Output = Literal["residual", "absolute", "bounded"]
+Prior = Literal["none", "sector"]
 
 #: Shared-MLP widths of the four SA levels and of the head (paper Fig. 2 / LG-GAN).
 SA_WIDTHS: tuple[tuple[int, ...], ...] = ((32, 32, 64), (64, 64, 128), (128, 128, 256), (256, 256, 512))
@@ -107,6 +109,11 @@ class GeneratorConfig:
         budget_scale_m: the budget channel is ``lambda / budget_scale_m``.
         global_feature: add a zero-initialised linear map of the scan's max-pooled F4 descriptor
             to the first head layer (see the module docstring).
+        prior: ``"sector"``: the model also takes the analytic per-point channels of
+            :mod:`icpbench.generator.prior` (B, N, 8) as input features of the first SA level and
+            of the head, and adds ``prior_gain`` times the sector attack's direction to its output
+            before the bounded squashing (needs ``output="bounded"``); ``"none"``: coordinates only.
+        prior_gain: initial value of the learnable gain of the prior direction (dimensionless).
     """
 
     a: float = 2.0
@@ -124,6 +131,8 @@ class GeneratorConfig:
     conditioned: bool = False
     budget_scale_m: float = 1.0
     global_feature: bool = False
+    prior: Prior = "none"
+    prior_gain: float = 2.0
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -145,6 +154,8 @@ class GeneratorConfig:
         for name in ("scale_m", "offset_scale_m", "budget_scale_m"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
+        if self.prior != "none" and self.output != "bounded":
+            raise InputError(f"prior={self.prior!r} needs output='bounded', got {self.output!r}")
         if self.norm_groups < 1 or any(w % self.norm_groups for w in (32, FP_WIDTH)):
             raise InputError(f"norm_groups must divide 32, got {self.norm_groups}")
         _ = self.geometry  # validates a, b, c, k, k_interp, idw_power, fps
@@ -189,7 +200,7 @@ class GeneratorConfig:
 
 #: Config fields introduced after the first shipped checkpoints, with the value that reproduces
 #: the behaviour of configs written before them.
-_ADDED_LATER: dict[str, Any] = {"global_feature": False}
+_ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).
@@ -214,6 +225,40 @@ def add_global_feature(model: Generator) -> Generator:
     wide = Generator(model.config.with_(global_feature=True)).to(device=p.device, dtype=p.dtype)
     missing, unexpected = wide.load_state_dict(model.state_dict(), strict=False)
     assert not unexpected and all(k.startswith("glob.") for k in missing), (missing, unexpected)
+    wide.chunk_size = model.chunk_size
+    return wide.train(model.training)
+
+
+def add_prior(model: Generator, kind: str = "sector", gain: float = 2.0) -> Generator:
+    """A copy of a coordinate-only bounded ``model`` that also takes the analytic prior channels.
+
+    The new input weights (first SA level and first head layer) are zero, so the copy's network
+    output ``h`` equals the original's; the output becomes ``squash(h + gain * d_prior)``, i.e.
+    fine-tuning starts from the trained model pulled towards the sector attack's directions.
+
+    Raises:
+        InputError: the model already has a prior, or its output is not ``"bounded"``.
+    """
+    if model.needs_prior:
+        raise InputError("this generator already takes prior channels")
+    p = next(model.parameters())
+    wide = Generator(model.config.with_(prior=kind, prior_gain=float(gain))).to(device=p.device,
+                                                                              dtype=p.dtype)
+    state = wide.state_dict()
+    for k, v in model.state_dict().items():
+        tgt = state[k]
+        if tgt.shape == v.shape:
+            state[k] = v
+        else:  # widened input: old columns first, then the prior's (zero)
+            new = torch.zeros_like(tgt)
+            if k == "sa.0.first.weight":  # input [xyz (3), prior (8)]
+                new[:, :v.shape[1]] = v
+            else:  # head.0.weight: input [features (259), prior (8), budget (0/1)]
+                n_old = FP_WIDTH * 3 + SA_WIDTHS[0][-1] + 3
+                new[:, :n_old] = v[:, :n_old]
+                new[:, n_old + PRIOR_CHANNELS:] = v[:, n_old:]
+            state[k] = new
+    wide.load_state_dict(state)
     wide.chunk_size = model.chunk_size
     return wide.train(model.training)
 
@@ -284,13 +329,14 @@ class Generator(nn.Module):
         super().__init__()
         self.config = cfg = config or GeneratorConfig()
         g, nk = cfg.norm_groups, cfg.norm
-        in_feats = (0, *(w[-1] for w in SA_WIDTHS[:-1]))
+        n_prior = PRIOR_CHANNELS if cfg.prior != "none" else 0
+        in_feats = (n_prior, *(w[-1] for w in SA_WIDTHS[:-1]))
         self.sa = nn.ModuleList([SetAbstraction(i, w, nk, g)
                                  for i, w in zip(in_feats, SA_WIDTHS, strict=True)])
         self.fp = nn.ModuleList([nn.Conv1d(w[-1], FP_WIDTH, 1) for w in SA_WIDTHS[1:]])
         self.fp_norms = nn.ModuleList([_norm(nk, FP_WIDTH, g, 1) for _ in SA_WIDTHS[1:]])
         extra = 1 if cfg.conditioned else 0
-        dims = (FP_WIDTH * 3 + SA_WIDTHS[0][-1] + 3, *HEAD_WIDTHS, 3)
+        dims = (FP_WIDTH * 3 + SA_WIDTHS[0][-1] + 3 + n_prior, *HEAD_WIDTHS, 3)
         self.head = nn.ModuleList([nn.Conv1d(i + extra, o, 1)
                                    for i, o in zip(dims[:-1], dims[1:], strict=True)])
         if cfg.output in ("residual", "bounded"):
@@ -302,6 +348,10 @@ class Generator(nn.Module):
             self.glob = nn.Linear(SA_WIDTHS[-1][-1], HEAD_WIDTHS[0])
             nn.init.zeros_(self.glob.weight)
             nn.init.zeros_(self.glob.bias)
+        #: learnable gain of the prior direction in the output (prior models only)
+        self.prior_gain: nn.Parameter | None = None
+        if cfg.prior != "none":
+            self.prior_gain = nn.Parameter(torch.tensor(float(cfg.prior_gain)))
         #: Samples per chunk in :meth:`forward` (None: 1 on CPU, where per-sample passes keep the
         #: working set in cache and were 1.6x faster for B=8, N=2,048 forward+backward; the whole
         #: batch on GPU). Not part of the config: it never changes the result (except "batch" norm,
@@ -346,33 +396,54 @@ class Generator(nn.Module):
             raise InputError("this generator takes no budget (conditioned=False and output is not "
                              "'bounded'); pass budget=None")
 
+    @property
+    def needs_prior(self) -> bool:
+        """Whether :meth:`forward` takes the analytic prior channels (``prior != "none"``)."""
+        return self.config.prior != "none"
+
+    def _check_prior(self, prior: Tensor | None, x: Tensor) -> None:
+        if self.needs_prior:
+            if not isinstance(prior, Tensor) or prior.shape != (*x.shape[:2], PRIOR_CHANNELS):
+                raise InputError(f"this generator needs prior channels of shape "
+                                 f"{(*x.shape[:2], PRIOR_CHANNELS)} (icpbench.generator.prior), got "
+                                 f"{getattr(prior, 'shape', type(prior).__name__)}")
+        elif prior is not None:
+            raise InputError("this generator takes no prior channels (prior='none'); pass prior=None")
+
     # -- network ------------------------------------------------------------------------------
-    def encode(self, x: Tensor, geo: Geometry) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def encode(self, x: Tensor, geo: Geometry, prior: Tensor | None = None
+               ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Encoder features of the clean scans x (B, N, 3): F1 (B, 64, N), F2 (B, 128, n2),
         F3 (B, 256, n3), F4 (B, 512, n4) (channels first; level-k columns follow
-        ``geo.fps_idx[:, :n_k]``). Budget-free, so one encoding can be decoded for several budgets."""
+        ``geo.fps_idx[:, :n_k]``). Budget-free, so one encoding can be decoded for several budgets.
+        ``prior`` (B, N, 8): the analytic channels of prior models (features of the first level)."""
         self._check_inputs(x, geo)
+        self._check_prior(prior, x)
         _, n2, n3, n4 = geo.sizes
         p = self.parameters().__next__()
         xs = (x.to(p.dtype) / self.config.scale_m).transpose(1, 2)  # (B, 3, N), scaled
         xyz2 = gather(xs, geo.fps_idx)
         pts = (xs, xs, xyz2, xyz2[..., :n3], xyz2[..., :n4])  # sources of level 1, centres 1..4
-        f1 = self.sa[0](pts[0], None, pts[1], geo.groups[0])
+        f0 = None if prior is None else prior.to(p.dtype).transpose(1, 2)  # (B, 8, N)
+        f1 = self.sa[0](pts[0], f0, pts[1], geo.groups[0])
         f2 = self.sa[1](pts[1], f1, pts[2], geo.groups[1])
         f3 = self.sa[2](pts[2], f2, pts[3], geo.groups[2])
         f4 = self.sa[3](pts[3], f3, pts[4], geo.groups[3])
         return f1, f2, f3, f4
 
     def decode(self, x: Tensor, geo: Geometry, feats: tuple[Tensor, Tensor, Tensor, Tensor],
-               budget: Tensor | None = None, *, trace: dict[str, Tensor] | None = None) -> Tensor:
+               budget: Tensor | None = None, *, prior: Tensor | None = None,
+               trace: dict[str, Tensor] | None = None) -> Tensor:
         """Head: encoder features -> adversarial scans (B, N, 3) in ``x``'s dtype.
 
-        ``budget`` (B,) in metres for conditioned models. If ``trace`` is a dict, the up-sampled
-        features (``up2..up4``, (B, 64, N)) and the inputs of the four head convolutions
+        ``budget`` (B,) in metres for conditioned models, ``prior`` (B, N, 8) for prior models.
+        If ``trace`` is a dict, the up-sampled features (``up2..up4``, (B, 64, N)) and the inputs
+        of the four head convolutions
         (``head0..head3``: (B, 259 / 256 / 128 / 64, N), before the budget channel) are put in it.
         """
         self._check_inputs(x, geo)
         self._check_budget(budget, x.shape[0])
+        self._check_prior(prior, x)
         p = self.parameters().__next__()
         xs = (x.to(p.dtype) / self.config.scale_m).transpose(1, 2)
         ups = []
@@ -382,7 +453,10 @@ class Generator(nn.Module):
             ups.append(up)
             if trace is not None:
                 trace[f"up{j + 2}"] = up
-        h = torch.cat([ups[2], ups[1], ups[0], feats[0], xs], 1)  # (B, 259, N)
+        parts = [ups[2], ups[1], ups[0], feats[0], xs]
+        if prior is not None:
+            parts.append(prior.to(p.dtype).transpose(1, 2))
+        h = torch.cat(parts, 1)  # (B, 259 (+8), N)
         cond = None
         if self.config.conditioned:
             assert budget is not None
@@ -397,6 +471,9 @@ class Generator(nn.Module):
             if i < len(self.head) - 1:
                 h = F.relu(h, inplace=True)
         out = h.transpose(1, 2)  # (B, N, 3)
+        if prior is not None:
+            assert self.prior_gain is not None
+            out = out + self.prior_gain * prior[..., 0:3].to(out.dtype)
         if self.config.output == "residual":
             return x + (self.config.offset_scale_m * out).to(x.dtype)
         if self.config.output == "bounded":
@@ -407,23 +484,28 @@ class Generator(nn.Module):
             return x + (lam * u).to(x.dtype)
         return (self.config.scale_m * out).to(x.dtype)
 
-    def forward(self, x: Tensor, geo: Geometry, budget: Tensor | None = None) -> Tensor:
+    def forward(self, x: Tensor, geo: Geometry, budget: Tensor | None = None,
+                prior: Tensor | None = None) -> Tensor:
         """x (B, N, 3) clean scans (sensor frame, metres), geo from :meth:`precompute` on the same
-        scans, budget (B,) metres (conditioned models only) -> adversarial scans (B, N, 3).
+        scans, budget (B,) metres (conditioned models only), prior (B, N, 8) channels of
+        :func:`icpbench.generator.prior.sector_prior_batch` (prior models only) -> adversarial
+        scans (B, N, 3).
 
         The batch is run in chunks of :attr:`chunk_size` samples inside one autograd graph; with
         per-sample normalisation (``group``/``none``) this gives the same result as one pass."""
         self._check_inputs(x, geo)
         B = x.shape[0]
         self._check_budget(budget, B)
+        self._check_prior(prior, x)
         step = self._chunk(x)
         if step >= B:
-            return self.decode(x, geo, self.encode(x, geo), budget)
+            return self.decode(x, geo, self.encode(x, geo, prior), budget, prior=prior)
         outs = []
         for s in range(0, B, step):
             part, g = x[s:s + step], geo.select(range(s, min(s + step, B)))
-            outs.append(self.decode(part, g, self.encode(part, g),
-                                    None if budget is None else budget[s:s + step]))
+            pr = None if prior is None else prior[s:s + step]
+            outs.append(self.decode(part, g, self.encode(part, g, pr),
+                                    None if budget is None else budget[s:s + step], prior=pr))
         return torch.cat(outs)
 
     def _chunk(self, x: Tensor) -> int:

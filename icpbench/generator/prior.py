@@ -1,0 +1,83 @@
+"""Analytic per-point channels for the generator: the sector attack's one-step sensitivities.
+
+Beyond the paper (docs/methods.md, "Sensitivity prior"): the PointNet++ generator sees only point
+coordinates, so it must discover from data which points constrain which pose direction. The
+linearised point-to-plane step of the sector baseline (Laconte, Lisus & Barfoot, RA-L 2024,
+arXiv 2309.04251; :mod:`icpbench.sector`) gives exactly that in closed form at the cost of one
+nearest-neighbour query and a 6x6 solve. With ``GeneratorConfig.prior = "sector"`` the generator
+receives, for every scan point (sensor frame):
+
+==========  =====  =================================================================================
+channels    shape  meaning
+==========  =====  =================================================================================
+0:3         (3,)   the sector attack's unit displacement direction ``sign(g_ji) R^T n_i`` for its
+                   worst axis j (x or y); zero for points without a map point within ``d_max``
+3:6         (3,)   the unit normal of the associated map point, ``R^T n_i`` (zero if unassociated)
+6:8         (2,)   sensitivities ``g_xi``, ``g_yi`` of the one-step x/y pose error to a fault on
+                   point i, divided by their mean absolute value over the scan (dimensionless)
+==========  =====  =================================================================================
+
+The attacker is thus assumed to know the map and the true pose, the same knowledge the sector
+baseline and the PGD oracle use. The channels do not depend on the budget.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from icpbench import sector
+from icpbench.errors import InputError
+from icpbench.mapindex import MapIndex
+
+#: Number of prior channels per point (see the module docstring).
+PRIOR_CHANNELS = 8
+#: Association gate of the prior (metres): the lidar ICP preset's d_max.
+PRIOR_DMAX_M = 5.0
+
+
+def sector_prior(scan: np.ndarray, T_gt: np.ndarray, map_index: MapIndex,
+                 d_max: float = PRIOR_DMAX_M) -> np.ndarray:
+    """Prior channels (N, 8) float32 of one clean scan (N, 3) (sensor frame, metres).
+
+    Args:
+        scan: (N, 3) clean scan, sensor frame.
+        T_gt: (4, 4) true scan->map transform.
+        map_index: the map (map frame) with unit normals.
+        d_max: association gate (metres).
+
+    Scans with fewer than 6 associated points get all-zero channels (the generator then falls
+    back to its coordinate-only behaviour).
+    """
+    scan = np.asarray(scan, dtype=np.float64)
+    out = np.zeros((scan.shape[0], PRIOR_CHANNELS), dtype=np.float32)
+    try:
+        model = sector.analyse(scan, T_gt, map_index, d_max=d_max)
+    except InputError:
+        if sector.associate(scan, T_gt, map_index, d_max).n_valid >= 6:
+            raise
+        return out
+    v = model.assoc.valid
+    R = np.asarray(T_gt, dtype=np.float64)[:3, :3]
+    n_s = model.assoc.normals_map[v] @ R
+    n_s /= np.maximum(np.linalg.norm(n_s, axis=1, keepdims=True), 1e-12)
+    wc = model.worst_case(1.0)
+    j = int(np.argmax(wc[:2]))
+    sign = np.where(model.G[j] < 0, -1.0, 1.0)
+    out[v, 0:3] = sign[:, None] * n_s
+    out[v, 3:6] = n_s
+    g = model.G[:2]
+    out[v, 6:8] = (g / np.maximum(np.abs(g).mean(axis=1, keepdims=True), 1e-12)).T
+    return out
+
+
+def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIndex]) -> torch.Tensor:
+    """Prior channels (B, N, 8) float32 of a batch of clean scans (B, N, 3), sensor frame."""
+    if scans.ndim != 3 or scans.shape[-1] != 3 or T_gt.shape != (scans.shape[0], 4, 4):
+        raise InputError(f"need scans (B, N, 3) and T_gt (B, 4, 4), got {tuple(scans.shape)} "
+                         f"and {tuple(T_gt.shape)}")
+    if len(maps) != scans.shape[0]:
+        raise InputError(f"need one map per scan, got {len(maps)} for {scans.shape[0]} scans")
+    s = scans.detach().to("cpu", torch.float64).numpy()
+    T = T_gt.detach().to("cpu", torch.float64).numpy()
+    return torch.as_tensor(np.stack([sector_prior(s[b], T[b], maps[b]) for b in range(len(maps))]))
