@@ -148,6 +148,8 @@ def plot_comparison(cmp: pd.DataFrame, path: str | Path, ours: str, other: str) 
     sc = ax.scatter(cmp["x"], cmp["y"], c=v, cmap="coolwarm", vmin=-lim, vmax=lim, s=14)
     fig.colorbar(sc, ax=ax, shrink=0.8, label=f"{ours} - {other} [m]")
     ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
     ax.set_title(f"max(|lon|, |lat|) error: {ours} minus {other}")
     parts = av.violinplot(v[np.isfinite(v)], showextrema=True)
     for b in parts["bodies"]:

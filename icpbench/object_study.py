@@ -79,7 +79,9 @@ def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path) 
     names = [n for n in clouds if n != "_clean" and not n.endswith("(strict)")]
     clean = clouds["_clean"]
     k = clean.shape[0]
-    fig, axes = plt.subplots(k, len(names), figsize=(2.6 * len(names), 2.6 * k), squeeze=False)
+    # one row per object: its panels share both axes, so the clouds are drawn at the same scale
+    fig, axes = plt.subplots(k, len(names), figsize=(2.6 * len(names), 2.6 * k), squeeze=False,
+                             sharex="row", sharey="row")
     ids = list(dict.fromkeys(rows["sample_id"]))[:k]
     for i in range(k):
         for j, n in enumerate(names):
@@ -97,10 +99,13 @@ def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path) 
             ax.text(0.98, 0.02, f"{r['xy_err']:.3f}", transform=ax.transAxes, ha="right",
                     va="bottom", fontsize=7)
             ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.tick_params(labelsize=6)
+            ax.set_xlabel("x [normalised]", fontsize=7)
+            if j == 0:
+                ax.set_ylabel("y [normalised]", fontsize=7)
             if i == 0:
                 ax.set_title(n, fontsize=9)
-    fig.suptitle("colour: angle of X_adv - X in x-y; top right: heading error; bottom right: "
-                 "x-y error (normalised units)", fontsize=8)
+    fig.suptitle("map frame, objects normalised to radius 1; colour: direction of X_adv - X in the "
+                 "x-y plane (hsv, -180 to 180 deg)\ntop right: heading error [deg]; bottom right: "
+                 "x-y translation error [normalised]", fontsize=8)
     return save(fig, path, dpi=110)

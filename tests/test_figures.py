@@ -1,0 +1,96 @@
+"""Every figure the package writes labels its numeric axes (colour bars included) with a unit."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from matplotlib.figure import Figure
+
+from icpbench.danger_map import plot_comparison, plot_route
+from icpbench.datasets.base import Dataset
+from icpbench.object_study import figure as object_figure
+from icpbench.plotting import axes_without_units, pyplot
+from icpbench.types import Sample
+
+
+@pytest.fixture
+def saved(monkeypatch):
+    """Record, for every figure saved during the test, the axes that lack a unit."""
+    found: list[list[str]] = []
+    real = Figure.savefig
+
+    def check_then_save(fig, *args, **kwargs):
+        found.append(axes_without_units(fig))
+        return real(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", check_then_save)
+    return found
+
+
+def test_check_finds_a_missing_unit_and_accepts_categories_and_shared_axes():
+    plt = pyplot()
+    fig, (a, b, c) = plt.subplots(1, 3, sharey=True)
+    a.plot([0, 1], [0, 2])
+    a.set_xlabel("x [m]")
+    a.set_ylabel("error")  # no unit: reported
+    b.plot([0, 1], [0, 2])
+    b.set_xlabel("time (s)")  # y tick labels hidden by sharey: covered by a's y label
+    c.violinplot([np.arange(5.0)])
+    c.set_xticks([1], ["generator"])  # category names: no unit needed
+    c.set_xlabel("")
+    sc = c.scatter([1], [1], c=[1.0])
+    fig.colorbar(sc, ax=c)  # colour bar without a label: reported
+    missing = axes_without_units(fig)
+    plt.close(fig)
+    assert len(missing) == 2
+    assert any("y axis label 'error'" in m for m in missing)
+    assert sum("y axis label ''" in m for m in missing) == 1  # the colour bar
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0, 1])
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y, lateral (m)")
+    assert axes_without_units(fig) == []
+    plt.close(fig)
+
+
+def test_route_maps_and_comparison_have_metres_on_both_axes(saved, tmp_path):
+    per_loc = pd.DataFrame({"x": np.arange(10) * 20.0, "y": np.zeros(10), "stretch": "open",
+                            "trans_err_xy": np.linspace(0.1, 2.0, 10)})
+    plot_route(per_loc, tmp_path / "map.png", title="route")
+    cmp = per_loc.assign(difference=np.linspace(-1.0, 1.0, 10))
+    plot_comparison(cmp, tmp_path / "cmp.png", "generator", "sector")
+    assert saved == [[], []]
+
+
+def test_object_study_figure_labels_normalised_axes(saved, tmp_path):
+    rng = np.random.default_rng(0)
+    clean = rng.normal(size=(2, 50, 3))
+    clouds = {"_clean": clean, "original": clean, "uniform": clean + 0.05,
+              "uniform (strict)": clean + 0.05}
+    rows = pd.DataFrame([{"attack": a, "sample_id": f"o{i}", "heading_err_deg": 1.0, "xy_err": 0.1}
+                         for a in ("original", "uniform") for i in range(2)])
+    object_figure(rows, clouds, tmp_path / "objects.png")
+    assert saved == [[]]
+
+
+class _Route(Dataset):
+    """Four samples along a line with route positions in their metadata."""
+
+    name = "route-fixture"
+
+    def __len__(self) -> int:
+        return 4
+
+    def __getitem__(self, i: int) -> Sample:
+        rng = np.random.default_rng(i)
+        pts = rng.uniform(-20, 20, size=(200, 3)).astype(np.float32)
+        normals = np.tile(np.float32([0, 0, 1]), (200, 1))
+        return Sample(id=f"r/{i}", scan=pts, map=pts, map_normals=normals, T_gt=np.eye(4),
+                      meta={"x": 10.0 * i, "y": 0.0, "pass": 1})
+
+
+def test_dataset_pictures_label_their_axes(saved, tmp_path):
+    from icpbench.dataset_figures import show_dataset
+
+    paths = show_dataset(_Route(), tmp_path)
+    assert [p.exists() for p in paths] == [True, True]
+    assert saved == [[], []]
