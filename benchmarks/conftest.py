@@ -1,5 +1,5 @@
-"""Benchmark settings: one torch thread (choose threads deliberately on this 2-core VM, DESIGN §9)
-and a terminal summary of the speed ratios that ``bench_icp.py`` records."""
+"""Benchmark settings: one torch thread (threads are chosen deliberately on small CPUs; README,
+"Conventions") and a terminal summary of the speed ratios that ``bench_icp.py`` records."""
 
 from __future__ import annotations
 

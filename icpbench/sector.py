@@ -26,8 +26,9 @@ Pose-error frame (``frame`` argument):
   expressed in the true vehicle frame (docs/architecture.md, "Frames, units and pose error"), so
   component 0 (``rho_x``) is longitudinal
   and 1 (``rho_y``) lateral, up to the small random init offset.
-* ``"sensor"``: ``xi_s = log(inv(T_gt) T_hat)`` in the true sensor frame (the frame the research
-  note recommends): rows ``[R^T n_i, p_i x R^T n_i]``. To first order ``xi = Ad(T_gt) xi_s``.
+* ``"sensor"``: ``xi_s = log(inv(T_gt) T_hat)`` in the true sensor frame (x and y are then
+  longitudinal and lateral whatever the map frame): rows ``[R^T n_i, p_i x R^T n_i]``. To first
+  order ``xi = Ad(T_gt) xi_s``.
 
 Sectors are azimuth wedges of the sensor frame (angle of ``(p_x, p_y)`` about the sensor's z axis,
 all elevations): ``S(theta0, width) = {i : (az_i - theta0) mod 2 pi < width}``.
@@ -420,7 +421,7 @@ def min_sector_width(weights: np.ndarray, az: np.ndarray, budget_m: float,
 
 @dataclass(frozen=True)
 class Resilience:
-    """Resilience of one scan location (noise-free form of the research note, §3).
+    """Resilience of one scan location (noise-free form; docs/methods.md, "Analytic sector attack").
 
     Attributes:
         width_rad: smallest wedge width at which any of ``axes`` reaches its alert limit
@@ -442,7 +443,7 @@ class Resilience:
 
 
 # --------------------------------------------------------------------------------------------
-# noise (hazard probability), research note §2.5
+# noise (hazard probability; docs/methods.md, "Analytic sector attack")
 # --------------------------------------------------------------------------------------------
 def hazard_probability(mu: np.ndarray | float, sigma: np.ndarray | float,
                        limit: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
@@ -532,8 +533,8 @@ class SectorAnalysis:
         """Smallest corrupted wedge at which any of ``axes`` reaches its alert limit.
 
         Args:
-            budget_m: fault bound tau per point (metres); the research note suggests the ICP's
-                association gate, the attack uses the budget lambda.
+            budget_m: fault bound tau per point (metres): the ICP's association gate is a natural
+                choice (larger faults are rejected as outliers); the attack uses the budget lambda.
             alert_m: alert limit per axis (one number for all, or one per axis); units of the
                 component (metres for x/y/z, radians for roll/pitch/yaw). Default 0.5 m (an
                 assumption: the paper's limits were not available).

@@ -10,7 +10,7 @@ Levels and index spaces (``n1 = N``, ``n_k = floor(N / a_k)`` with ``(a_2, a_3, 
 * level 1: all N points in their original order (identity centroids);
 * levels 2-4: the first ``n_2``, ``n_3``, ``n_4`` entries of ONE farthest-point sampling (FPS) of
   ``n_2`` points. FPS restarted on an FPS prefix with the same start point reproduces that prefix,
-  so the prefixes are exactly nested FPS (research note B.4). Level-k points are
+  so the prefixes are exactly nested FPS (docs/methods.md, "Generator design"). Level-k points are
   ``X[fps_idx[:n_k]]`` and level-k features are stored in that order, so an index into level k is
   a position in ``fps_idx``;
 * ``groups[0]`` (B, N, K): K nearest level-1 points of every point (itself included);
