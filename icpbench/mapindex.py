@@ -76,20 +76,32 @@ class MapIndex:
         return self._table[dtype]
 
     def nearest2(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Nearest and second-nearest map distance and the nearest index of finite queries (K, 3).
+        """Nearest and second-nearest map distance and the nearest index of queries (K, 3).
 
         Returns (d1 (K,), d2 (K,), idx (K,) int64), no distance bound; ``d2 = inf`` when the map
-        has a single point. Used by the ICP to know how far a query may move before its nearest
-        neighbour can change (by less than ``(d2 - d1) / 2`` it cannot: triangle inequality).
+        has a single point. Queries the tree cannot answer (non-finite, or so far away that the
+        squared distance overflows) get ``d1 = d2 = inf`` and ``idx = M`` (the sentinel row).
+        Used by the ICP to know how far a query may move before its nearest neighbour can change
+        (by less than ``(d2 - d1) / 2`` it cannot: triangle inequality).
         """
-        q = np.ascontiguousarray(q, dtype=np.float64)
-        if len(self) < 2:
-            i, d = self.tree.batch_knn_search(q, 1, num_threads=self.workers)
-            d1 = np.sqrt(np.asarray(d, dtype=np.float64)[:, 0])
-            return d1, np.full_like(d1, np.inf), np.asarray(i, dtype=np.int64)[:, 0]
-        i, d = self.tree.batch_knn_search(q, 2, num_threads=self.workers)
+        q = np.asarray(q, dtype=np.float64)
+        K, M = q.shape[0], len(self)
+        d1, d2 = np.full(K, np.inf), np.full(K, np.inf)
+        idx = np.full(K, M, dtype=np.int64)
+        finite = np.isfinite(q).all(axis=1)
+        if not finite.any():
+            return d1, d2, idx
+        k = 1 if M < 2 else 2
+        i, d = self.tree.batch_knn_search(np.ascontiguousarray(q[finite]), k,
+                                          num_threads=self.workers)
+        i = np.asarray(i).astype(np.int64)  # "no neighbour" comes back as 2**64 - 1 -> -1
         d = np.sqrt(np.asarray(d, dtype=np.float64))
-        return d[:, 0], d[:, 1], np.asarray(i[:, 0], dtype=np.int64)
+        good = (i[:, 0] >= 0) & (i[:, 0] < M) & np.isfinite(d[:, 0])
+        sel = np.flatnonzero(finite)[good]
+        d1[sel], idx[sel] = d[good, 0], i[good, 0]
+        if k == 2:
+            d2[sel] = np.where((i[good, 1] >= 0) & (i[good, 1] < M), d[good, 1], np.inf)
+        return d1, d2, idx
 
     def query(self, q: np.ndarray, max_dist: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Nearest map point of each query (K, 3).
@@ -97,16 +109,23 @@ class MapIndex:
         Returns (dist (K,), idx (K,)); queries with no map point closer than ``max_dist`` or with
         non-finite coordinates get ``dist = inf`` and ``idx = M`` (the sentinel row).
         """
+        d1, _, idx = self._nearest1(q)
+        far = ~(d1 < max_dist)
+        d1[far], idx[far] = np.inf, len(self)
+        return d1, idx
+
+    def _nearest1(self, q: np.ndarray) -> tuple[np.ndarray, None, np.ndarray]:
+        """Like :meth:`nearest2` without the second neighbour (k = 1 is cheaper)."""
         q = np.asarray(q, dtype=np.float64)
+        K, M = q.shape[0], len(self)
+        d1, idx = np.full(K, np.inf), np.full(K, M, dtype=np.int64)
         finite = np.isfinite(q).all(axis=1)
-        dist = np.full(q.shape[0], np.inf)
-        idx = np.full(q.shape[0], len(self), dtype=np.int64)
         if finite.any():
-            i, d2 = self.tree.batch_knn_search(np.ascontiguousarray(q[finite]), 1,
-                                               num_threads=self.workers)
-            d = np.sqrt(np.asarray(d2, dtype=np.float64)[:, 0])
-            near = d < max_dist
-            sel = np.flatnonzero(finite)[near]
-            dist[sel] = d[near]
-            idx[sel] = np.asarray(i, dtype=np.int64)[near, 0]
-        return dist, idx
+            i, d = self.tree.batch_knn_search(np.ascontiguousarray(q[finite]), 1,
+                                              num_threads=self.workers)
+            i = np.asarray(i).astype(np.int64)[:, 0]
+            d = np.sqrt(np.asarray(d, dtype=np.float64)[:, 0])
+            good = (i >= 0) & (i < M) & np.isfinite(d)
+            sel = np.flatnonzero(finite)[good]
+            d1[sel], idx[sel] = d[good], i[good]
+        return d1, None, idx

@@ -164,24 +164,19 @@ def icp(
     p = torch.where(finite[..., None], scans, torch.zeros((), dtype=dtype))
     T = T_init.to(dtype)
     R, t = T[:, :3, :3], T[:, :3, 3]
-    map_t = [m.tensors(dtype) for m in maps]
     active = torch.ones(B, dtype=torch.bool)
     iterations = torch.full((B,), cfg.max_iterations, dtype=torch.long)
     converged = torch.zeros(B, dtype=torch.bool)
     n_inliers = torch.zeros(B, dtype=torch.long)
     query_bound = np.inf if cfg.d_max is None else (cfg.d_max * (3.0 if cfg.soft_dmax else 1.0))
+    nn = _Correspondences(maps, p.detach(), finite, dtype)
 
     H_last = torch.zeros(B, 6, 6, dtype=dtype)
-    # Query the KD-tree in a spatially coherent order (1 m voxels of the scan, fixed for the run):
-    # measured ~25% faster queries; the result does not depend on the order.
-    p_np = p.detach().to(torch.float64).numpy()
-    orders = [np.lexsort(np.floor(p_np[b] / 1.0).T[::-1]) for b in range(B)]
     implicit = cfg.backprop == "implicit" and scans.requires_grad and torch.is_grad_enabled()
-    src = p.detach() if implicit else p
+    src = (p.detach() if implicit else p).transpose(1, 2).contiguous()  # (B, 3, N)
     with torch.set_grad_enabled(torch.is_grad_enabled() and not implicit):
         for it in range(cfg.max_iterations):
-            H, g, w = _linearise(src, R, t, maps, map_t, finite, orders, active, query_bound, cfg,
-                                 mode)
+            H, g, w = _linearise(src, R, t, nn, active, query_bound, cfg, mode)
             n_inliers = torch.where(active, (w.detach() > 0).sum(1), n_inliers)
             H_last = torch.where(active[:, None, None], H.detach(), H_last)
             delta = _solve(H, g, cfg)
@@ -196,8 +191,8 @@ def icp(
                 break
 
     if implicit:
-        R, t = _implicit_pose(p, R.detach(), t.detach(), maps, map_t, finite, orders, query_bound,
-                              cfg, mode)
+        R, t = _implicit_pose(p.transpose(1, 2).contiguous(), R.detach(), t.detach(), nn,
+                              query_bound, cfg, mode)
 
     T_out = torch.cat([torch.cat([R, t[..., None]], -1),
                        T_init[:, 3:4, :].to(dtype)], 1)
@@ -212,47 +207,174 @@ def icp(
     )
 
 
-def _linearise(p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, maps: Sequence[MapIndex],
-               map_t: list, finite: torch.Tensor, orders: list[np.ndarray], active: torch.Tensor,
-               query_bound: float, cfg: ICPConfig, mode: Mode
+class _Correspondences:
+    """Nearest map point of every scan point, re-queried only where it may have changed.
+
+    After a query at position ``q_ref`` with nearest and second-nearest map distances d1 <= d2,
+    any position within ``(d2 - d1) / 2`` of ``q_ref`` has the same nearest map point (triangle
+    inequality: its distance to that point is < d1 + s <= d2 - s, below its distance to any other
+    map point). So each iteration re-queries only the points that moved at least that far since
+    their last query; the result is exactly that of a full query (less a 1e-9 m safety margin on
+    the slack). Late ICP iterations move points by millimetres, so most points skip the KD-tree.
+
+    Queries go in a spatially coherent order (1 m voxels of the scan, fixed for the run): measured
+    ~25% faster KD-tree queries; the result does not depend on the order. Indices point into one
+    table of all B maps (``MapIndex.table`` rows concatenated), so one gather fetches every
+    correspondence's point and normal.
+    """
+
+    _MARGIN_M = 1e-9
+
+    def __init__(self, maps: Sequence[MapIndex], p: torch.Tensor, finite: torch.Tensor,
+                 dtype: torch.dtype) -> None:
+        B, N, _ = p.shape
+        self.maps = maps
+        firsts: dict[int, int] = {}  # one table entry per distinct map object
+        tables, offsets, off = [], [], 0
+        for m in maps:
+            if id(m) not in firsts:
+                firsts[id(m)] = off
+                tables.append(m.table(dtype))
+                off += len(m) + 1
+            offsets.append(firsts[id(m)])
+        self.table = tables[0] if len(tables) == 1 else torch.cat(tables)
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+        self.finite = finite.numpy()
+        p_np = p.to(torch.float64).numpy()
+        self.orders = [np.lexsort(np.floor(p_np[b] / 1.0).T[::-1]) for b in range(B)]
+        sentinel = np.asarray([off_b + len(m) for off_b, m in zip(offsets, maps, strict=True)])
+        self.idx = np.repeat(sentinel[:, None], N, axis=1)  # (B, N) rows of the table
+        self.ref = np.full((B, 3, N), np.nan)  # where each point was last queried
+        self.slack = np.full((B, N), -np.inf)  # how far it may move from there
+        self.found = np.zeros((B, N), dtype=bool)  # the tree returned a neighbour
+        self.queried = 0  # points sent to the KD-tree (for profiling)
+
+    def update(self, q: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """Nearest-neighbour rows (B, N) int64 of the table for map-frame points q (B, 3, N)
+        (only the ``active`` samples are updated)."""
+        q_np = q.detach().to(torch.float64).numpy()
+        for b in np.flatnonzero(active.numpy()):
+            qb = q_np[b]
+            moved = qb - self.ref[b]
+            need = ~(np.einsum("ij,ij->j", moved, moved) < self.slack[b] ** 2)
+            need &= self.finite[b]  # (non-finite queries get the sentinel from nearest2)
+            order = self.orders[b]
+            sel = order[need[order]]
+            if sel.size == 0:
+                continue
+            qs = qb[:, sel]
+            d1, d2, i = self.maps[b].nearest2(qs.T)
+            self.idx[b, sel] = i + self.offsets[b]
+            self.found[b, sel] = i < len(self.maps[b])
+            self.ref[b][:, sel] = qs
+            self.slack[b, sel] = np.where(d2 > d1, 0.5 * (d2 - d1) - self._MARGIN_M, -np.inf)
+            self.queried += sel.size
+        return torch.from_numpy(self.idx)
+
+    def gather(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Map points and normals (B, 3, N) each, at table rows idx (B, N). (A row gather then a
+        transpose: measured 10-15x faster than gathering columns of a (6, M) table.)"""
+        B, N = idx.shape
+        mn = self.table.index_select(0, idx.reshape(-1)).view(B, N, 6).transpose(1, 2).contiguous()
+        return mn[:, :3], mn[:, 3:]
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Cross products of 3-vectors stored as rows: a, b (B, 3, N) -> (B, 3, N). (On this layout
+    measured ~2.5x faster than ``torch.linalg.cross`` on (B, N, 3).)"""
+    ax, ay, az = a.unbind(1)
+    bx, by, bz = b.unbind(1)
+    return torch.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], 1)
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Row-wise dot products of (B, 3, N) tensors -> (B, N)."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+class _PlaneNormalEquations(torch.autograd.Function):
+    """Point-to-plane IRLS normal equations with a hand-written backward (hard gate).
+
+    Forward: q (B, 3, N) map-frame scan points, m and n (B, 3, N) their map correspondences and
+    unit normals (no gradient), ``mask`` (B, N) bool (finite, active, distance below the gate),
+    ``c2`` the squared Cauchy parameter (``inf``: no robust kernel). Returns
+    ``H = sum_i w_i J_i J_i^T`` (B, 6, 6), ``g = sum_i w_i r_i J_i`` (B, 6) and w (B, N), with
+    ``r_i = n_i.(q_i - m_i)``, ``J_i = [n_i, q_i x n_i]``, ``w_i = mask_i / (1 + r_i^2 / c^2)``.
+
+    Backward (exact; the gate is a step with no gradient, as in autograd of the same formula):
+    with ``S = dL/dH + dL/dH^T``, ``P_i = S J_i`` and ``gJ_i = dL/dg . J_i``,
+    ``dL/dw_i = J_i.P_i / 2 + r_i gJ_i``, ``dL/dr_i = w_i gJ_i + dL/dw_i dw_i/dr_i``,
+    ``dL/dJ_i = w_i (P_i + r_i dL/dg)`` and ``dL/dq_i = dL/dr_i n_i + n_i x (dL/dJ_i)[3:]``.
+    One graph node per iteration instead of ~30 (measured in docs/performance.md).
+    """
+
+    @staticmethod
+    def forward(ctx: Any, q: torch.Tensor, m: torch.Tensor, n: torch.Tensor, mask: torch.Tensor,
+                c2: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        r = _dot(q - m, n)  # (B, N)
+        w = mask.to(q.dtype)
+        if np.isfinite(c2):
+            w = w / (1.0 + r * r / c2)
+        r = r * mask
+        J = torch.cat([n, _cross(q, n)], 1)  # (B, 6, N): [d/drho, d/dphi]
+        Jw = J * w[:, None]
+        H = Jw @ J.transpose(1, 2)
+        g = (Jw @ r[..., None])[..., 0]
+        ctx.save_for_backward(n, J, w, r)
+        ctx.c2 = c2
+        ctx.mark_non_differentiable(w)
+        return H, g, w
+
+    @staticmethod
+    def backward(ctx: Any, gH: torch.Tensor | None, gg: torch.Tensor | None,
+                 _gw: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
+        n, J, w, r = ctx.saved_tensors
+        B = J.shape[0]
+        if gH is None:
+            gH = torch.zeros(B, 6, 6, dtype=J.dtype)
+        if gg is None:
+            gg = torch.zeros(B, 6, dtype=J.dtype)
+        P = (gH + gH.transpose(1, 2)) @ J  # (B, 6, N)
+        gJ = (gg[:, None, :] @ J)[:, 0]  # (B, N)
+        dw = 0.5 * (J * P).sum(1) + r * gJ
+        dr = w * gJ
+        if np.isfinite(ctx.c2):
+            dr = dr - dw * (2.0 / ctx.c2) * r * w * w
+        dJu = w[:, None] * (P[:, 3:] + r[:, None] * gg[:, 3:, None])  # (B, 3, N)
+        dq = dr[:, None] * n + _cross(n, dJu)
+        return dq, None, None, None, None
+
+
+def _linearise(p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, nn: _Correspondences,
+               active: torch.Tensor, query_bound: float, cfg: ICPConfig, mode: Mode
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One Gauss-Newton linearisation at the pose (R (B, 3, 3), t (B, 3)) of scan points p (B, N, 3).
+    """One Gauss-Newton linearisation at the pose (R (B, 3, 3), t (B, 3)) of scan points p (B, 3, N)
+    (coordinates as rows: measured 2-3x faster element-wise ops than (B, N, 3)).
 
     Correspondences (KD-tree, no gradient) for the ``active`` samples only (the others get none).
     Returns H (B, 6, 6), g (B, 6) of the IRLS normal equations ``H delta = -g`` and the weights
     w (B, N) (0 for points without a correspondence)."""
-    B, N, _ = p.shape
     dtype = p.dtype
-    q = p @ R.transpose(1, 2) + t[:, None, :]  # (B, N, 3), map frame
-    q_np = q.detach().to(torch.float64).numpy()
-    m_list, n_list, ok_list = [], [], []
-    for b in range(B):
-        if not bool(active[b]):
-            idx = np.full(N, len(maps[b]), dtype=np.int64)
-        else:
-            qb = np.where(finite[b].numpy()[:, None], q_np[b], np.nan)[orders[b]]
-            idx = np.empty(N, dtype=np.int64)
-            idx[orders[b]] = maps[b].query(qb, query_bound)[1]
-        idx_t = torch.from_numpy(idx)
-        pts, nrm = map_t[b]
-        m_list.append(torch.index_select(pts, 0, idx_t))
-        if nrm is not None:
-            n_list.append(torch.index_select(nrm, 0, idx_t))
-        ok_list.append(idx_t < len(maps[b]))
-    m = torch.stack(m_list)
-    ok = torch.stack(ok_list) & finite
+    q = R @ p + t[..., None]  # (B, 3, N), map frame
+    m, n = nn.gather(nn.update(q, active))
+    valid = torch.from_numpy(nn.finite & nn.found) & active[:, None]
     diff = q - m
+    dd = diff.detach()
+    d2 = _dot(dd, dd)  # (B, N) squared correspondence distances
+    if mode == "plane" and not cfg.soft_dmax:
+        # hard gate: the correspondence exists and is closer than d_max (= the query bound)
+        mask = valid & (d2 < query_bound**2) if np.isfinite(query_bound) else valid
+        c2 = np.inf if cfg.cauchy_c is None else cfg.cauchy_c**2
+        return _PlaneNormalEquations.apply(q, m, n, mask, c2)
+    ok = valid & (d2 < query_bound**2)
+    q, diff, n = q.transpose(1, 2), diff.transpose(1, 2), n.transpose(1, 2)  # (B, N, 3) views
     d = torch.linalg.norm(torch.where(ok[..., None], diff, torch.ones((), dtype=dtype)), dim=-1)
     if mode == "plane":
-        nn = torch.stack(n_list)
-        r = (diff * nn).sum(-1)  # (B, N)
+        r = (diff * n).sum(-1)  # (B, N)
         w = _gate(d, cfg) * _cauchy(r * r, cfg)
         w = torch.where(ok, w, torch.zeros((), dtype=dtype))
         r = torch.where(ok, r, torch.zeros((), dtype=dtype))
-        qx, qy, qz = q.unbind(-1)
-        nx, ny, nz = nn.unbind(-1)
-        qxn = torch.stack([qy * nz - qz * ny, qz * nx - qx * nz, qx * ny - qy * nx], -1)
-        J = torch.cat([nn, qxn], -1)  # (B, N, 6): [d/drho, d/dphi]
+        J = torch.cat([n, torch.linalg.cross(q, n, dim=-1)], -1)  # (B, N, 6): [d/drho, d/dphi]
         Jw = J * w[..., None]
         H = Jw.transpose(1, 2) @ J
         g = (Jw * r[..., None]).sum(1)
@@ -273,10 +395,11 @@ def _linearise(p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, maps: Sequence
     return H, g, w
 
 
-def _implicit_pose(p: torch.Tensor, R0: torch.Tensor, t0: torch.Tensor, maps: Sequence[MapIndex],
-                   map_t: list, finite: torch.Tensor, orders: list[np.ndarray], query_bound: float,
-                   cfg: ICPConfig, mode: Mode) -> tuple[torch.Tensor, torch.Tensor]:
-    """The final pose (R0 (B, 3, 3), t0 (B, 3), no graph) with the implicit-function gradient.
+def _implicit_pose(p: torch.Tensor, R0: torch.Tensor, t0: torch.Tensor, nn: _Correspondences,
+                   query_bound: float, cfg: ICPConfig, mode: Mode
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The final pose (R0 (B, 3, 3), t0 (B, 3), no graph) with the implicit-function gradient of
+    the scan points p (B, 3, N).
 
     At the converged pose the IRLS gradient ``g(T, X)`` (B, 6) vanishes, so
     ``dT/dX = -(dg/d delta)^-1 dg/dX`` (implicit function theorem; Blondel et al., "Efficient and
@@ -290,13 +413,12 @@ def _implicit_pose(p: torch.Tensor, R0: torch.Tensor, t0: torch.Tensor, maps: Se
     x = p.detach()
 
     def g_of(dl: torch.Tensor) -> torch.Tensor:
-        return _linearise(x, *_left_update(dl, R0, t0), maps, map_t, finite, orders, on,
-                          query_bound, cfg, mode)[1]
+        return _linearise(x, *_left_update(dl, R0, t0), nn, on, query_bound, cfg, mode)[1]
 
     with torch.enable_grad():
         A = torch.autograd.functional.jacobian(g_of, torch.zeros(B, 6, dtype=p.dtype))  # (B,6,B,6)
     A = A[torch.arange(B), :, torch.arange(B), :]  # per-sample blocks (B, 6, 6)
-    _, g, _ = _linearise(p, R0, t0, maps, map_t, finite, orders, on, query_bound, cfg, mode)
+    _, g, _ = _linearise(p, R0, t0, nn, on, query_bound, cfg, mode)
     delta = _solve(A, g, cfg)
     return _left_update(delta - delta.detach(), R0, t0)
 

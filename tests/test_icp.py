@@ -174,3 +174,65 @@ def test_degenerate_scan_is_flagged_not_crashing():
     reg = PointToPlaneICP("lidar").register(ground, maps, batch.T_init)
     assert torch.isfinite(reg.T).all()
     assert reg.status[0] == "singular" and not bool(reg.converged[0])
+
+
+def test_correspondence_cache_returns_the_nearest_neighbour_of_every_point():
+    """The ICP re-queries only points that moved more than half their d2 - d1 gap; after any
+    sequence of small and large moves every point still has its true nearest map point."""
+    from icpbench.mapindex import MapIndex
+    from icpbench.targets.icp import _Correspondences
+
+    rng = np.random.default_rng(0)
+    s = scene_sample(2_000, 5_000, seed=4)
+    maps = [MapIndex(s.map, s.map_normals)] * 2  # the same map twice: one table entry
+    p = torch.as_tensor(np.stack([s.scan, s.scan[::-1]]), dtype=torch.float64)  # (2, N, 3)
+    p[1, :7] = float("nan")
+    finite = torch.isfinite(p).all(-1)
+    nn = _Correspondences(maps, torch.nan_to_num(p), finite, torch.float64)
+    q = torch.nan_to_num(p).transpose(1, 2).contiguous()  # (B, 3, N)
+    skipped = 0
+    for step in (0.5, 1e-3, 1e-4, 0.05, 1e-5, 2.0, 1e-6):
+        q = q + torch.as_tensor(rng.normal(0, step, (2, 3, 1)) + rng.normal(0, step / 10, q.shape))
+        before = nn.queried
+        idx = nn.update(q, torch.ones(2, dtype=torch.bool)).numpy()
+        skipped += 2 * p.shape[1] - (nn.queried - before)
+        for b in range(2):
+            _, want = maps[b].query(q[b].T.numpy())
+            got = idx[b] - nn.offsets[b]
+            assert np.array_equal(got[finite[b].numpy()], want[finite[b].numpy()])
+            assert (got[~finite[b].numpy()] == len(maps[b])).all()  # sentinel row
+    assert skipped > 2 * p.shape[1]  # the cache really saved queries
+
+
+def test_plane_backward_matches_autograd_of_the_formula():
+    """The hand-written backward of the point-to-plane normal equations equals autograd of the
+    same formula, with and without the Cauchy kernel, with and without a gradient on H."""
+    from icpbench.targets.icp import _PlaneNormalEquations
+
+    gen = torch.Generator().manual_seed(0)
+    B, N = 3, 50
+    q = torch.randn(B, 3, N, generator=gen, dtype=torch.float64, requires_grad=True)
+    m = torch.randn(B, 3, N, generator=gen, dtype=torch.float64)
+    n = torch.nn.functional.normalize(torch.randn(B, 3, N, generator=gen, dtype=torch.float64), dim=1)
+    mask = torch.rand(B, N, generator=gen) > 0.2
+    gH = torch.randn(B, 6, 6, generator=gen, dtype=torch.float64)
+    gg = torch.randn(B, 6, generator=gen, dtype=torch.float64)
+
+    def reference(c2):
+        r = ((q - m) * n).sum(1)
+        w = mask / (1.0 + r * r / c2)
+        J = torch.cat([n, torch.linalg.cross(q, n, dim=1)], 1)
+        return torch.einsum("bin,bjn,bn->bij", J, J, w), torch.einsum("bin,bn->bi", J, w * r), w
+
+    for c2 in (0.7, float("inf")):
+        H_ref, g_ref, w_ref = reference(c2)
+        H, g, w = _PlaneNormalEquations.apply(q, m, n, mask, c2)
+        for got, want in ((H, H_ref), (g, g_ref), (w, w_ref)):
+            torch.testing.assert_close(got, want.detach(), rtol=1e-12, atol=1e-12)
+        for use_H in (True, False):
+            H_ref, g_ref, _ = reference(c2)
+            H, g, _ = _PlaneNormalEquations.apply(q, m, n, mask, c2)
+            (want,) = torch.autograd.grad((g_ref * gg).sum() + use_H * (H_ref * gH).sum(), q)
+            (got,) = torch.autograd.grad((g * gg).sum() + (H * gH).sum() if use_H
+                                         else (g * gg).sum(), q)
+            torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
