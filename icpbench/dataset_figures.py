@@ -8,6 +8,10 @@
 * ``<name>_scan_on_submap.png``: one sample from above, the submap in grey and the scan in colour,
   at the initial guess ``T_init`` (left) and at the ground truth ``T_gt`` (right).
 
+For ``lidar-sim`` variety (``town_seed``, ``sensor``): :func:`towns_figure` draws several towns side
+by side, :func:`sensors_figure` one place seen by several sensors (full sweeps, before the
+subsampling to N points). Every axis is in metres.
+
 Matplotlib with the Agg backend; nothing is shown on screen.
 """
 
@@ -58,6 +62,9 @@ def show_dataset(dataset: str | Dataset, out_dir: str | Path, *, sample_index: i
     ds = _resolve(dataset, dataset_kwargs)
     if len(ds) == 0:
         raise InputError(f"dataset {ds.name!r} has no samples to draw")
+    if sample_index is not None and not 0 <= sample_index < len(ds):
+        raise InputError(f"sample index {sample_index} is out of range: dataset {ds.name!r} has "
+                         f"{len(ds)} samples (0..{len(ds) - 1})")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     name = (ds.name or type(ds).__name__).replace("/", "_")
@@ -81,13 +88,14 @@ def _pick_sample(ds: Dataset, index: int | None) -> Sample:
     return ds[0]
 
 
-def _height_map(ds: Any, res_m: float) -> tuple[np.ndarray, tuple[float, float, float, float]]:
-    """Height above ground (H, W) of the static town (and the teach pass's parked cars)."""
+def _height_map(ds: Any, res_m: float, pad: float = 150.0
+                ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Height above ground (H, W) in metres of the static town (and the teach pass's parked
+    cars), on a grid of ``res_m`` covering the route plus ``pad`` metres."""
     from icpbench.datasets.lidar_model import make_scene
 
     town = ds.town
     x0, y0, x1, y1 = town.bounds
-    pad = 150.0
     x0, y0 = max(x0, town.route.xy[:, 0].min() - pad), max(y0, town.route.xy[:, 1].min() - pad)
     x1, y1 = min(x1, town.route.xy[:, 0].max() + pad), min(y1, town.route.xy[:, 1].max() + pad)
     xs, ys = np.arange(x0, x1, res_m), np.arange(y0, y1, res_m)
@@ -96,15 +104,14 @@ def _height_map(ds: Any, res_m: float) -> tuple[np.ndarray, tuple[float, float, 
     rays[:, 0], rays[:, 1], rays[:, 2], rays[:, 5] = X.ravel(), Y.ravel(), 100.0, -1.0
     import open3d as o3d
 
-    height = np.zeros(X.size)
+    top = np.full(X.size, -np.inf)
     for scene in (make_scene(town.vertices, town.triangles), ds._cars_scene(0)):
         if scene is None:
             continue
         t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        height = np.maximum(height, np.where(np.isfinite(t), 100.0 - t, 0.0))
-    raised = height > 0.3  # measure structures from the (rolling) ground, not from z = 0
-    if raised.any():
-        height[raised] -= town.terrain.height(rays[raised, :2])
+        top = np.maximum(top, np.where(np.isfinite(t), 100.0 - t, -np.inf))
+    ground = town.terrain.height(rays[:, :2].astype(np.float64))  # slopes, banks
+    height = np.where(np.isfinite(top), top - ground, 0.0)
     return height.reshape(X.shape), (x0, x1, y0, y1)
 
 
@@ -113,10 +120,25 @@ def _town_figure(ds: Any, path: Path) -> None:
     span = float(np.ptp(route.xy, axis=0).max())
     H, extent = _height_map(ds, res_m=max(0.6, span / 2000))
     fig, ax = plt.subplots(figsize=(11, 9), dpi=150)
-    shade = np.clip(H / 8.0, 0, 1)
-    shade[H < 0.3] = np.nan  # ground, curbs and sidewalks stay white
-    ax.imshow(shade, origin="lower", extent=extent, cmap="Greys", vmin=-0.3, vmax=1.0,
-              interpolation="nearest")
+    im = _draw_heights(ax, H, extent)
+    fig.colorbar(im, ax=ax, shrink=0.6, label="structure height above ground (m)")
+    _draw_route(ax, route)
+    ax.set_title(f"lidar-sim town ({_town_name(ds)}): {route.length / 1000:.2f} km loop, "
+                 f"{ds.n_vertices} locations per pass; grey = structures (darker = taller)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _draw_heights(ax: Any, H: np.ndarray, extent: tuple[float, float, float, float]) -> Any:
+    """Structures taller than 0.3 m in grey (darker = taller, black from 8 m); returns the image."""
+    shade = np.where(H < 0.3, np.nan, H)  # ground, curbs and sidewalks stay white
+    return ax.imshow(shade, origin="lower", extent=extent, cmap="Greys", vmin=-0.3 * 8.0, vmax=8.0,
+                     interpolation="nearest")
+
+
+def _draw_route(ax: Any, route: Any, legend: bool = True) -> None:
+    """The route coloured by place, a start arrow, equal axes in metres."""
     s = np.arange(0.0, route.length, 1.0)
     xy, _ = route.pose(s)
     seen = set()
@@ -134,12 +156,82 @@ def _town_figure(ds: Any, path: Path) -> None:
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(f"lidar-sim town (seed {ds.seed}): {route.length / 1000:.2f} km loop, "
-                 f"{ds.n_vertices} locations per pass; grey = structures (darker = taller)")
-    ax.legend(loc="best", fontsize=9, title="place (stretch)")
-    fig.tight_layout()
-    fig.savefig(path)
+    if legend:
+        ax.legend(loc="best", fontsize=9, title="place (stretch)")
+
+
+def _town_name(ds: Any) -> str:
+    t = getattr(ds, "town_seed", None)
+    return f"seed {ds.seed}" if t is None else f"town_seed {t}"
+
+
+def towns_figure(datasets: list[Any], path: str | Path) -> Path:
+    """Several ``lidar-sim`` towns side by side from above (structures in grey by height, the
+    route by place; axes in metres). ``datasets``: single-town ``LidarSimDataset`` s."""
+    if not datasets:
+        raise InputError("towns_figure needs at least one lidar-sim dataset")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, len(datasets), figsize=(6.5 * len(datasets), 6.8), dpi=150,
+                             squeeze=False)
+    im = None
+    for k, (ax, ds) in enumerate(zip(axes[0], datasets, strict=True)):
+        span = float(np.ptp(ds.route.xy, axis=0).max())
+        H, extent = _height_map(ds, res_m=max(0.8, span / 1200), pad=60.0)
+        im = _draw_heights(ax, H, extent)
+        _draw_route(ax, ds.route, legend=k == 0)
+        z = ds.ground.height_sd(np.arange(0.0, ds.route.length, 5.0), 0.0)
+        ax.set_title(f"{_town_name(ds)}: {ds.route.length / 1000:.2f} km, "
+                     f"{len(ds.route.layout)} stretches\nroad height {z.min():+.1f} to "
+                     f"{z.max():+.1f} m, camber {100 * ds.ground.camber:.1f} %", fontsize=10)
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.7, label="structure height above ground (m)")
+    fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
+    return path
+
+
+def sensors_figure(datasets: list[Any], path: str | Path, *, pass_id: int = 1, frame: int = 0,
+                   radius_m: float = 40.0) -> Path:
+    """The same place (repeat pass ``pass_id``, location ``frame``) seen by several sensors: the
+    full sweep of each (before subsampling) from above, coloured by height, in the vehicle frame
+    (x forward, y left, metres). ``datasets``: single-town ``LidarSimDataset`` s of one town with
+    different sensors."""
+    from icpbench.datasets.lidar_model import cast_scan
+
+    if not datasets:
+        raise InputError("sensors_figure needs at least one lidar-sim dataset")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    n = len(datasets)
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 5.2), dpi=150, sharex=True, sharey=True,
+                             squeeze=False)
+    sc = None
+    for ax, ds in zip(axes[0], datasets, strict=True):
+        s_m, d, dyaw, _, _ = ds.live_pose(pass_id, frame)
+        T = ds.sensor_pose(s_m, d, dyaw)
+        scan = cast_scan([ds._static_scene(), ds._cars_scene(pass_id)], T, ds.lidar,
+                         sm.sample_rng(pass_id, frame, 17))
+        P = scan.points
+        keep = np.linalg.norm(P[:, :2], axis=1) <= radius_m
+        sc = ax.scatter(P[keep, 0], P[keep, 1], c=P[keep, 2], s=0.2, lw=0, cmap="viridis",
+                        vmin=-ds.lidar.mount_height_m - 0.5, vmax=6.0)
+        ax.plot(0, 0, "r^", ms=6)
+        ax.set_aspect("equal")
+        ax.set_xlim(-radius_m, radius_m)
+        ax.set_ylim(-radius_m, radius_m)
+        ax.set_xlabel("x, longitudinal (m)")
+        el = ds.lidar.elevations()
+        ax.set_title(f"{ds.sensor}: {ds.lidar.n_beams} beams, {el.min():+.1f} to "
+                     f"{el.max():+.1f} deg\n{len(P)} returns (subsampled to {ds.n_points})", fontsize=10)
+    axes[0][0].set_ylabel("y, lateral (m)")
+    fig.colorbar(sc, ax=axes[0].tolist(), shrink=0.8, label="z in the sensor frame (m)")
+    ds = datasets[0]
+    fig.suptitle(f"lidar-sim {_town_name(ds)}, pass {pass_id}, location {frame} "
+                 f"({ds.route.place_at(ds.live_pose(pass_id, frame)[0])}): full sweeps within "
+                 f"{radius_m:g} m", y=1.02)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    return path
 
 
 def _stretch(place: str) -> str:

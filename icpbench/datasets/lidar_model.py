@@ -1,8 +1,12 @@
 """A spinning multi-beam lidar, ray-cast against triangle meshes with Open3D's ``RaycastingScene``.
 
 Sensor frame: origin at the optical centre, x forward, y left, z up (metres). A sweep fires
-``n_beams`` lasers at fixed elevation angles (uniform over ``vfov_deg``) at every azimuth step of
-``h_res_deg`` over 360 degrees; the motion during a sweep is ignored (scans are deskewed). Each
+``n_beams`` lasers at fixed elevation angles (uniform over ``vfov_deg``, or the explicit
+``elevations_deg`` of a real sensor with non-uniform spacing) at every azimuth step of
+``h_res_deg`` over 360 degrees, each ring shifted by its own azimuth offset
+(``ring_azimuth_offsets_deg``, like the per-laser rotational corrections of a Velodyne); the
+motion during a sweep is ignored (scans are deskewed). Presets of common sensors are in
+:mod:`icpbench.datasets.sensors`. Each
 return is the first hit of the ray with the scene, kept when its range lies in
 ``[min_range_m, max_range_m]``, with Gaussian range noise of standard deviation ``range_noise_m``
 along the beam. Optional effects: random dropouts, and spurious weather returns (snowflakes /
@@ -36,6 +40,14 @@ class LidarConfig:
         range_noise_m: standard deviation of the Gaussian range noise (metres).
         dropout: probability that a valid return is lost.
         mount_height_m: height of the optical centre above the road (metres).
+        elevations_deg: explicit elevation angle of every beam in degrees (``n_beams`` values,
+            any order; empty: uniform over ``vfov_deg``). ``vfov_deg`` must then be their
+            (min, max).
+        ring_azimuth_offsets_deg: azimuth offset of every ring in degrees (``n_beams`` values in
+            the order of the elevations; empty: all 0).
+
+    The two per-beam fields are left out of :meth:`to_dict` while empty, so configurations that do
+    not use them keep their old parameter hash (dataset cache key).
     """
 
     n_beams: int = 32
@@ -46,6 +58,8 @@ class LidarConfig:
     range_noise_m: float = 0.02
     dropout: float = 0.0
     mount_height_m: float = 1.9
+    elevations_deg: tuple[float, ...] = ()
+    ring_azimuth_offsets_deg: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         lo, hi = self.vfov_deg
@@ -58,6 +72,18 @@ class LidarConfig:
             raise InputError("need 0 <= min_range_m < max_range_m")
         if self.range_noise_m < 0 or not (0 <= self.dropout < 1):
             raise InputError("range_noise_m must be >= 0 and dropout in [0, 1)")
+        if not self.mount_height_m > 0:
+            raise InputError(f"mount_height_m must be positive, got {self.mount_height_m}")
+        for what, vals in (("elevations_deg", self.elevations_deg),
+                           ("ring_azimuth_offsets_deg", self.ring_azimuth_offsets_deg)):
+            if vals and len(vals) != self.n_beams:
+                raise InputError(f"{what} needs one value per beam ({self.n_beams}), got {len(vals)}")
+            if not np.all(np.isfinite(np.asarray(vals, dtype=np.float64))):
+                raise InputError(f"{what} must be finite numbers")
+        if self.elevations_deg and not np.allclose(
+                [min(self.elevations_deg), max(self.elevations_deg)], [lo, hi], atol=1e-6):
+            raise InputError(f"vfov_deg {self.vfov_deg} must be the (min, max) of elevations_deg "
+                             f"({min(self.elevations_deg)}, {max(self.elevations_deg)})")
 
     @classmethod
     def from_any(cls, cfg: LidarConfig | dict | None) -> LidarConfig:
@@ -72,20 +98,35 @@ class LidarConfig:
                 raise InputError(f"unknown lidar setting(s) {sorted(unknown)}; valid: "
                                  f"{sorted(cls.__dataclass_fields__)}")
             kw = dict(cfg)
-            if "vfov_deg" in kw:
-                kw["vfov_deg"] = tuple(float(v) for v in kw["vfov_deg"])
+            for key in ("vfov_deg", "elevations_deg", "ring_azimuth_offsets_deg"):
+                if key in kw:
+                    kw[key] = tuple(float(v) for v in kw[key])
             return cls(**kw)
         raise InputError(f"lidar settings must be a LidarConfig or a dict, got {type(cfg).__name__}")
 
     def to_dict(self) -> dict:
+        """JSON-ready settings; the per-beam fields only when set (see the class docstring)."""
         d = asdict(self)
         d["vfov_deg"] = list(self.vfov_deg)
+        for key in ("elevations_deg", "ring_azimuth_offsets_deg"):
+            if d[key]:
+                d[key] = list(d[key])
+            else:
+                del d[key]
         return d
+
+    def elevations(self) -> np.ndarray:
+        """Elevation angle of every beam (n_beams,) in degrees."""
+        if self.elevations_deg:
+            return np.asarray(self.elevations_deg, dtype=np.float64)
+        return np.linspace(self.vfov_deg[0], self.vfov_deg[1], self.n_beams)
 
     def directions(self, azimuth_offset_rad: float = 0.0) -> np.ndarray:
         """Unit beam directions (n_beams * n_azimuth, 3) in the sensor frame, beam-major."""
-        el = np.deg2rad(np.linspace(self.vfov_deg[0], self.vfov_deg[1], self.n_beams))[:, None]
+        el = np.deg2rad(self.elevations())[:, None]
         az = (np.deg2rad(np.arange(0.0, 360.0, self.h_res_deg)) + azimuth_offset_rad)[None, :]
+        if self.ring_azimuth_offsets_deg:
+            az = az + np.deg2rad(np.asarray(self.ring_azimuth_offsets_deg, dtype=np.float64))[:, None]
         ce = np.cos(el)
         return np.stack([ce * np.cos(az), ce * np.sin(az),
                          np.broadcast_to(np.sin(el), (el.shape[0], az.shape[1]))], -1).reshape(-1, 3)

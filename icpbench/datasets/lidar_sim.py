@@ -25,6 +25,17 @@ ground truth is exact:
   moved by the paper's random offset
   (uniform +-0.3 m, +-10 deg on all axes): ``T_gt`` maps scan->map and ``T_init`` is the identity.
 
+Variety (beyond the paper): ``town_seed=N`` builds another town
+(:func:`~icpbench.datasets.town_style.random_style`: route, stretch order and lengths, road widths,
+houses, densities, sloping and cambered ground, irregular vegetation, signs, posts, kerbs, and
+moving road users in the repeat passes that never reach the map); ``sensor=NAME`` picks a lidar
+preset (:mod:`icpbench.datasets.sensors`: ``sim32`` (default), ``vlp16``, ``hdl32``, ``hdl64``,
+``os128``), with ``lidar={...}`` overriding its fields. Without them, the original town and sensor
+are generated exactly as before (same scans, sample ids and cache folder). A *list* of town seeds
+and/or sensors (``town_seed=[1,2,3]``) gives a :class:`~icpbench.datasets.lidar_mix.LidarSimMix`:
+every (town, sensor) combination, each generated and cached once in its own folder, shuffled
+together; evaluate on other town seeds for a generalisation split.
+
 Train and test splits are disjoint sets of repeat passes. Generated scans and submaps are cached
 as ``.npz`` under ``<cache_dir>/lidar-sim/<hash of the parameters>/`` (written atomically); the
 random offsets are re-drawn from the seed when a sample is loaded. By default samples come in a
@@ -43,13 +54,30 @@ import numpy as np
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
 from icpbench.datasets.lidar_model import LidarConfig, cast_scan, make_scene
-from icpbench.datasets.town import PLACES, Route, Town, make_route, make_town
+from icpbench.datasets.sensors import DEFAULT_SENSOR, sensor_config
+from icpbench.datasets.town import PLACES, Route, Town, make_ground, make_route, make_town
+from icpbench.datasets.town_style import town_style
 from icpbench.errors import InputError
 from icpbench.types import Sample
 
 FORMAT_VERSION = 1  # bump whenever the town, lidar or submap code changes what is generated
 #: Random streams (third key of :func:`~icpbench.datasets.submaps.sample_rng`).
-_CARS, _LIVE_POSE, _LIVE_SCAN, _SUBSAMPLE, _OFFSET, _TEACH, _PASS, _ORDER = range(8)
+_CARS, _LIVE_POSE, _LIVE_SCAN, _SUBSAMPLE, _OFFSET, _TEACH, _PASS, _ORDER, _MOVERS = range(9)
+
+
+#: Towns built in this process, shared by datasets of the same town (e.g. one per sensor).
+_TOWNS = sm.LRU(2)
+
+
+def _single(value: Any) -> Any:
+    """A one-element list or tuple as its element; anything else unchanged."""
+    if isinstance(value, list | tuple) and len(value) == 1:
+        return value[0]
+    return value
+
+
+def _is_multi(value: Any) -> bool:
+    return isinstance(value, list | tuple) and len(value) > 1
 
 
 class LidarSimDataset(Dataset):
@@ -71,7 +99,11 @@ class LidarSimDataset(Dataset):
         scan_voxel_m: the live scan keeps one return per voxel of this size (shrunk if needed to
             keep at least ``n_points`` voxels) before the random draw of ``n_points`` (0: a
             uniform draw over all returns); see :func:`~icpbench.datasets.submaps.spatial_subsample`.
-        lidar: :class:`LidarConfig` or a dict of overrides (beams, field of view, range, noise).
+        town_seed: None (the original town) or the seed of another town; a list gives a mix of
+            towns (see the module docstring).
+        sensor: lidar preset (:data:`~icpbench.datasets.sensors.SENSORS`); a list gives a mix.
+        lidar: :class:`LidarConfig` (replaces the preset) or a dict of overrides of the preset's
+            fields (beams, field of view, range, noise, mount height, dropout, ring offsets).
         lateral_offset_m: maximum lateral offset of the repeat passes from the teach line.
         car_change: share of parking spaces re-drawn in each pass (teach included): the other
             spaces keep their usual car (or stay empty).
@@ -89,18 +121,38 @@ class LidarSimDataset(Dataset):
     icp_preset: ClassVar[str] = "lidar"
     default_budgets: ClassVar[tuple[float, ...]] = (1.0, 2.0, 3.0, 4.0, 5.0)
 
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        """Several town seeds or sensors give a :class:`~icpbench.datasets.lidar_mix.LidarSimMix`
+        of single-town datasets instead (same name, same parameters)."""
+        if cls is LidarSimDataset and (_is_multi(kwargs.get("town_seed"))
+                                       or _is_multi(kwargs.get("sensor"))):
+            from icpbench.datasets.lidar_mix import LidarSimMix
+
+            return LidarSimMix(*args, **kwargs)
+        return super().__new__(cls)
+
     def __init__(self, *, seed: int = 0, split: Split = "test", n_points: int = 10_000,
                  n_passes: int = 6, test_passes: Sequence[int] = (1, 2),
                  train_passes: Sequence[int] | None = None, route_scale: float = 1.0,
                  sample_spacing_m: float = 15.0, teach_spacing_m: float = 5.0,
                  submap_window_m: float = 20.0, submap_radius_m: float = 45.0,
                  map_voxel_m: float = 0.25, scan_voxel_m: float = 0.3,
+                 town_seed: int | Sequence[int] | None = None,
+                 sensor: str | Sequence[str] = DEFAULT_SENSOR,
                  lidar: LidarConfig | dict | None = None, lateral_offset_m: float = 0.5,
                  car_change: float = 0.5, truck_prob: float = 0.2, weather_rate: float = 0.0,
                  offset_trans_m: float = 0.3, offset_rot_deg: float = 10.0,
                  order: Literal["shuffled", "route"] = "shuffled", cache_dir: str | Path | None = None,
                  threads: int = 1) -> None:
-        lidar_cfg = LidarConfig.from_any(lidar)
+        town_seed, sensor = _single(town_seed), _single(sensor)
+        if town_seed is not None:
+            if isinstance(town_seed, bool) or not isinstance(town_seed, int | np.integer):
+                raise InputError(f"town_seed must be an integer or a list of integers, got {town_seed!r}")
+            town_seed = int(town_seed)
+        if not isinstance(sensor, str):
+            raise InputError(f"sensor must be a preset name or a list of names, got {sensor!r}")
+        lidar_cfg = sensor_config(sensor, lidar)
+        self.style = town_style(town_seed)
         test_p = tuple(sorted({int(p) for p in test_passes}))
         all_p = tuple(range(1, int(n_passes) + 1))
         train_p = (tuple(p for p in all_p if p not in test_p) if train_passes is None
@@ -133,6 +185,11 @@ class LidarSimDataset(Dataset):
             "truck_prob": float(truck_prob),
             "weather_rate": float(weather_rate),
         }
+        # only when set, so that the original town and sensor keep their cache key and records
+        if town_seed is not None:
+            self._gen["town_seed"] = town_seed
+        if sensor != DEFAULT_SENSOR:
+            self._gen["sensor"] = sensor
         gen_rest = {k: v for k, v in self._gen.items() if k != "seed"}
         super().__init__(seed=seed, split=split, **gen_rest, n_passes=int(n_passes),
                          test_passes=list(test_p), train_passes=list(train_p),
@@ -144,7 +201,19 @@ class LidarSimDataset(Dataset):
         self.teach_spacing_m = float(teach_spacing_m)
         self.offset = (float(offset_trans_m), float(offset_rot_deg))
         self.threads = int(threads)
-        self.route: Route = make_route(self.seed, scale=float(route_scale))
+        self.town_seed, self.sensor = town_seed, sensor
+        # random streams: the original town keeps its keys (seed, ...); other towns get their own
+        self._keys: tuple[int, ...] = (self.seed,) if town_seed is None else (self.seed, 7_000_003,
+                                                                               town_seed)
+        tag = ([f"town{town_seed}"] if town_seed is not None else []) \
+            + ([sensor] if sensor != DEFAULT_SENSOR else [])
+        self._prefix = "/".join(["lidar-sim", *tag])  # sample ids: lidar-sim[/townN][/sensor]/...
+        if town_seed is None:
+            self.route: Route = make_route(self.seed, scale=float(route_scale))
+        else:
+            self.route = make_route(town_seed, scale=float(route_scale), corners=self.style.corners,
+                                    layout=self.style.layout)
+        self.ground = make_ground(self.route, self.style)
         self.n_vertices = int(self.route.length // self.sample_spacing_m)
         self.n_teach = int(self.route.length // self.teach_spacing_m)
         if self.n_vertices < 1:
@@ -154,7 +223,7 @@ class LidarSimDataset(Dataset):
         passes = {"test": test_p, "train": train_p, "all": tuple(sorted(set(test_p + train_p)))}[split]
         index = [(p, f) for p in passes for f in range(self.n_vertices)]
         if order == "shuffled":
-            perm = sm.sample_rng(self.seed, 0, _ORDER, len(passes), *passes).permutation(len(index))
+            perm = sm.sample_rng(*self._keys, 0, _ORDER, len(passes), *passes).permutation(len(index))
             index = [index[i] for i in perm]
         self._index = index
         self._town: Town | None = None
@@ -172,6 +241,11 @@ class LidarSimDataset(Dataset):
         p, f = self._index[i]
         return self.sample(p, f)
 
+    def sample_id(self, i: int) -> str:
+        """The id of sample ``i`` without generating it."""
+        p, f = self._index[i]
+        return f"{self._prefix}/pass{p}/{f:06d}"
+
     def sample(self, pass_id: int, frame: int) -> Sample:
         """The sample of repeat pass ``pass_id`` at teach vertex ``frame`` (any pass, any split)."""
         if pass_id < 1 or not 0 <= frame < self.n_vertices:
@@ -188,8 +262,12 @@ class LidarSimDataset(Dataset):
         meta = {"x": x, "y": y, "stretch": PLACES[place], "place": place, "pass": int(pass_id),
                 "frame": int(frame), "s_m": float(live["s"]), "lateral_m": float(live["d"]),
                 "truck": bool(live["truck"]), "n_returns": int(live["n_returns"])}
-        rng = sm.sample_rng(self.seed, pass_id, _OFFSET, frame)
-        return sm.make_sample(f"lidar-sim/pass{pass_id}/{frame:06d}", live["scan"], map_pts, map_n,
+        if self.town_seed is not None:
+            meta.update(town=self.town_seed, movers=int(live["movers"]))
+        if self.sensor != DEFAULT_SENSOR:
+            meta["sensor"] = self.sensor
+        rng = sm.sample_rng(*self._keys, pass_id, _OFFSET, frame)
+        return sm.make_sample(f"{self._prefix}/pass{pass_id}/{frame:06d}", live["scan"], map_pts, map_n,
                               rng, meta, *self.offset)
 
     def prepare(self, progress: bool | None = None) -> None:
@@ -207,7 +285,9 @@ class LidarSimDataset(Dataset):
     def town(self) -> Town:
         """The town meshes (built on first use; cached samples do not need them)."""
         if self._town is None:
-            self._town = make_town(self.seed, route=self.route)
+            seed = self.seed if self.town_seed is None else self.town_seed
+            key = (seed, self.town_seed is None, self._gen["route_scale"])
+            self._town = _TOWNS.get(key, lambda: make_town(seed, route=self.route, style=self.style))
         return self._town
 
     def _static_scene(self):
@@ -218,16 +298,19 @@ class LidarSimDataset(Dataset):
     def _cars_scene(self, pass_id: int):
         """Ray-casting scene of the parked cars of a pass (0: teach)."""
         def build():
-            V, F = self.town.cars_mesh(sm.sample_rng(self.seed, pass_id, _CARS),
+            V, F = self.town.cars_mesh(sm.sample_rng(*self._keys, pass_id, _CARS),
                                        self._gen["car_change"])
             return make_scene(V, F, self.threads)
 
         return self._car_scenes.get(pass_id, build)
 
     def sensor_pose(self, s: float, d: float = 0.0, dyaw: float = 0.0) -> np.ndarray:
-        """T_town_sensor (4, 4) of the lidar at route coordinates (s, d) with heading error dyaw."""
+        """T_town_sensor (4, 4) of the lidar at route coordinates (s, d) with heading error dyaw
+        (on a sloping or cambered road the vehicle pitches and rolls with it)."""
         xy, h = self.route.pose(s, d)
-        return sm.pose_2d(float(xy[0]), float(xy[1]), float(h) + dyaw, self.lidar.mount_height_m)
+        if self.ground.flat:
+            return sm.pose_2d(float(xy[0]), float(xy[1]), float(h) + dyaw, self.lidar.mount_height_m)
+        return self.ground.vehicle_pose(xy, float(h) + dyaw, self.lidar.mount_height_m)
 
     # -- teach pass and submaps ------------------------------------------------------------------
     def _teach_scan(self, j: int) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +318,7 @@ class LidarSimDataset(Dataset):
         def build() -> tuple[np.ndarray, np.ndarray]:
             T = self.sensor_pose(j * self.teach_spacing_m)
             scan = cast_scan([self._static_scene(), self._cars_scene(0)], T, self.lidar,
-                             sm.sample_rng(self.seed, 0, _TEACH, j), threads=self.threads)
+                             sm.sample_rng(*self._keys, 0, _TEACH, j), threads=self.threads)
             return sm.transform(T, scan.points), sm.rotate(T, scan.normals)
 
         return self._teach_scans.get(j, build)
@@ -283,10 +366,10 @@ class LidarSimDataset(Dataset):
         offset (m), heading error (rad), whether a truck passes, its longitudinal offset (m)."""
         if p < 1:
             raise InputError("live scans come from repeat passes >= 1")
-        prng = sm.sample_rng(self.seed, p, _PASS)
+        prng = sm.sample_rng(*self._keys, p, _PASS)
         lat_max = self._gen["lateral_offset_m"]
         base = prng.uniform(-0.6, 0.6) * lat_max
-        rng = sm.sample_rng(self.seed, p, _LIVE_POSE, f)
+        rng = sm.sample_rng(*self._keys, p, _LIVE_POSE, f)
         s = f * self.sample_spacing_m + rng.uniform(-0.25, 0.25) * self.sample_spacing_m
         d = float(np.clip(base + rng.normal(0, 0.3) * lat_max, -lat_max, lat_max))
         dyaw = float(np.deg2rad(np.clip(rng.normal(0, 1.0), -2.5, 2.5)))
@@ -299,10 +382,18 @@ class LidarSimDataset(Dataset):
         scenes = [self._static_scene(), self._cars_scene(p)]
         if truck:
             scenes.append(make_scene(*self.town.truck_mesh(s + truck_ds, 3.5), self.threads))
-        scan = cast_scan(scenes, T, self.lidar, sm.sample_rng(self.seed, p, _LIVE_SCAN, f),
+        n_movers = 0
+        if self.style.movers_per_scan > 0:  # road users of this pass only: never in the map
+            mrng = sm.sample_rng(*self._keys, p, _MOVERS, f)
+            n_movers = int(mrng.poisson(self.style.movers_per_scan))
+            scenes.append(make_scene(*self.town.movers_mesh(mrng, s, n_movers), self.threads))
+        scan = cast_scan(scenes, T, self.lidar, sm.sample_rng(*self._keys, p, _LIVE_SCAN, f),
                          weather_rate=self._gen["weather_rate"], threads=self.threads)
         idx = sm.spatial_subsample(scan.points, self.n_points, self._gen["scan_voxel_m"],
-                                   sm.sample_rng(self.seed, p, _SUBSAMPLE, f))
-        return {"scan": scan.points[idx].astype(np.float32), "T_town_live": T,
-                "place": np.array(str(self.route.place_at(s))), "s": np.array(s), "d": np.array(d),
-                "truck": np.array(truck), "n_returns": np.array(len(scan.points))}
+                                   sm.sample_rng(*self._keys, p, _SUBSAMPLE, f))
+        rec = {"scan": scan.points[idx].astype(np.float32), "T_town_live": T,
+               "place": np.array(str(self.route.place_at(s))), "s": np.array(s), "d": np.array(d),
+               "truck": np.array(truck), "n_returns": np.array(len(scan.points))}
+        if self.town_seed is not None:
+            rec["movers"] = np.array(n_movers)
+        return rec

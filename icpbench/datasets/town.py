@@ -25,7 +25,15 @@ landmarks are planar and near the road (banks, hedgerows, car rows, a store fron
 have walls in many directions and clutter (fences, trees, cars). Parked cars are not part of the
 static meshes: each pass draws its own occupancy of the parking *slots* (:meth:`Town.cars_mesh`),
 so some cars move between passes.
-Everything is deterministic given the seed.
+
+Everything else that varies between towns (route corners, order and lengths of the stretches,
+road widths, house sizes, set-backs, densities, slopes and camber, street clutter) is a
+:class:`~icpbench.datasets.town_style.TownStyle`: the original town uses
+:data:`~icpbench.datasets.town_style.LEGACY` (flat ground, no clutter) and is reproduced bit for
+bit; ``random_style(town_seed)`` gives the others, with sloping and cambered ground
+(:mod:`icpbench.datasets.ground`), irregular vegetation, signs, posts and kerbs, and moving road
+users in repeat passes (:mod:`icpbench.datasets.clutter`).
+Everything is deterministic given the seed (and the style).
 """
 
 from __future__ import annotations
@@ -35,6 +43,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from icpbench.datasets import clutter
+from icpbench.datasets.ground import Ground
+from icpbench.datasets.town_style import DEFAULT_CORNERS, DEFAULT_LAYOUT, DEFAULT_ROAD, LEGACY, TownStyle
 from icpbench.errors import InputError
 
 #: place -> stretch type (the ``stretch`` metadata of samples).
@@ -47,28 +58,8 @@ PLACES: dict[str, str] = {
 }
 STRETCH_TYPES: tuple[str, ...] = ("dense", "open", "highway", "underpass")
 
-#: Road extent (d_right, d_left) in metres around the driven lane centre, per place. The lane to the
-#: left (d = +3.5 m) is the oncoming / overtaking lane where the passing truck drives.
-ROAD: dict[str, tuple[float, float]] = {
-    "suburb": (-4.5, 8.0),
-    "parking": (-4.5, 8.0),
-    "field": (-2.5, 5.5),
-    "highway": (-3.5, 12.0),
-    "underpass": (-3.5, 8.0),
-}
-
-#: Range of the distance from the sidewalk to the house fronts in suburbs (metres).
-SUBURB_SETBACK_M: tuple[float, float] = (3.0, 9.0)
-
-#: Default route: corners of a hexagon-like loop (metres, about 2.8 km once the corners are rounded).
-DEFAULT_CORNERS: tuple[tuple[float, float], ...] = (
-    (0.0, 0.0), (600.0, 0.0), (900.0, 250.0), (900.0, 650.0), (350.0, 700.0), (0.0, 450.0),
-)
-#: Default layout: (start as a fraction of the route length, place), in driving order.
-DEFAULT_LAYOUT: tuple[tuple[float, str], ...] = (
-    (0.00, "suburb"), (0.22, "parking"), (0.30, "suburb"), (0.40, "field"), (0.52, "highway"),
-    (0.70, "underpass"), (0.76, "highway"), (0.84, "field"), (0.93, "suburb"),
-)
+#: Road extent (d_right, d_left) of the original town (metres; per town: ``TownStyle.road``).
+ROAD: dict[str, tuple[float, float]] = DEFAULT_ROAD
 
 
 # ---------------------------------------------------------------------------------------------
@@ -198,28 +189,7 @@ _BOX_F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5,
                    [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
 
 
-def _unit_sphere(res: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """A UV sphere of radius 1: vertices (V, 3), triangles (F, 3)."""
-    lat = np.linspace(0, np.pi, res + 1)[1:-1]
-    lon = np.linspace(0, 2 * np.pi, 2 * res, endpoint=False)
-    La, Lo = np.meshgrid(lat, lon, indexing="ij")
-    ring = np.stack([np.sin(La) * np.cos(Lo), np.sin(La) * np.sin(Lo), np.cos(La)], -1).reshape(-1, 3)
-    V = np.vstack([[0, 0, 1], ring, [0, 0, -1]])
-    m = 2 * res
-    F = []
-    for j in range(m):  # caps
-        F.append([0, 1 + j, 1 + (j + 1) % m])
-        base = 1 + (res - 2) * m
-        F.append([len(V) - 1, base + (j + 1) % m, base + j])
-    for r in range(res - 2):
-        for j in range(m):
-            a, b = 1 + r * m + j, 1 + r * m + (j + 1) % m
-            c, d = a + m, b + m
-            F += [[a, c, b], [b, c, d]]
-    return V, np.array(F)
-
-
-_SPHERE = _unit_sphere(4)
+_SPHERE = clutter.unit_sphere(4)
 
 
 @dataclass
@@ -277,17 +247,21 @@ class MeshBuilder:
         self.add(V, F)
 
     def sweep(self, route: Route, s0: float, s1: float, d0: float, d1: float, z0: float,
-              z1: float, step: float = 2.0) -> None:
+              z1: float, step: float = 2.0, ground: Ground | None = None) -> None:
         """A closed tube of rectangular section [d0, d1] x [z0, z1] following the route from s0 to
-        s1 (curbs, walls, guard rails, bridge decks)."""
+        s1 (curbs, walls, guard rails, bridge decks); z is above ``ground`` when given (a non-flat
+        ground), else absolute."""
         k = max(2, int(np.ceil((s1 - s0) / step)) + 1)
         s = np.linspace(s0, s1, k)
         sec = [(d0, z0), (d1, z0), (d1, z1), (d0, z1)]
         V = np.zeros((k, 4, 3))
+        lift = None
+        if ground is not None and not ground.flat:  # one height per cross-section: no twist
+            lift = ground.height(route.pose(s, 0.5 * (d0 + d1))[0])
         for j, (d, z) in enumerate(sec):
             xy, _ = route.pose(s, d)
             V[:, j, :2] = xy
-            V[:, j, 2] = z
+            V[:, j, 2] = z if lift is None else z + lift
         F = []
         for i in range(k - 1):
             for j in range(4):
@@ -348,18 +322,27 @@ class HillPatch:
 
 @dataclass
 class Terrain:
-    """Ground height (metres) over the town: 0 except on :class:`HillPatch` es."""
+    """Ground height (metres) over the town: the :class:`~icpbench.datasets.ground.Ground`
+    (slopes, camber; z = 0 in the original town) plus the :class:`HillPatch` es."""
 
     route: Route
     patches: list[HillPatch] = field(default_factory=list)
+    ground: Ground | None = None
+
+    @property
+    def flat(self) -> bool:
+        """True when the height is 0 everywhere."""
+        return not self.patches and (self.ground is None or self.ground.flat)
 
     def height(self, xy: np.ndarray) -> np.ndarray:
         """Ground height (K,) at town-frame points xy (K, 2)."""
         xy = np.atleast_2d(np.asarray(xy, dtype=np.float64))
+        base = self.ground.height(xy) if self.ground is not None and not self.ground.flat else None
         if not self.patches:
-            return np.zeros(len(xy))
+            return np.zeros(len(xy)) if base is None else base
         s, d = self.route.project(xy)
-        return np.max([p.height(s, d) for p in self.patches], axis=0)
+        hills = np.max([p.height(s, d) for p in self.patches], axis=0)
+        return hills if base is None else base + hills
 
     def mesh(self, patch: HillPatch, mb: MeshBuilder, step: float = 2.0) -> None:
         """Add a height-field mesh of one patch to ``mb``: a regular town-frame grid over the
@@ -374,12 +357,15 @@ class Terrain:
         xy = np.c_[X.ravel(), Y.ravel()]
         ss, dd = self.route.project(xy)
         z = patch.height(ss, dd)
+        keep_z = z > 1e-3
+        if self.ground is not None and not self.ground.flat:
+            z = z + self.ground.height(xy)
         nx, ny = X.shape
         i, j = np.meshgrid(np.arange(nx - 1), np.arange(ny - 1), indexing="ij")
         a = (i * ny + j).ravel()
         b, c, d = a + ny, a + ny + 1, a + 1
         F = np.vstack([np.c_[a, b, c], np.c_[a, c, d]])
-        F = F[z[F].max(1) > 1e-3]
+        F = F[keep_z[F].any(1)]
         if len(F):
             used, F = np.unique(F, return_inverse=True)
             mb.add(np.c_[xy[used], z[used]], F.reshape(-1, 3))
@@ -400,7 +386,8 @@ class Town:
         base_cars: (K, 6) float64 rows ``[occupied, along_m, length, width, body_top, roof]``: the
             "usual" parked car of each slot (see :meth:`cars_mesh`).
         bounds: (xmin, ymin, xmax, ymax) of the ground square (metres).
-        terrain: ground height (rolling fields); objects stand on it.
+        terrain: ground height (slopes, camber, rolling fields); objects stand on it.
+        style: the town's :class:`~icpbench.datasets.town_style.TownStyle`.
     """
 
     route: Route
@@ -410,6 +397,7 @@ class Town:
     base_cars: np.ndarray
     bounds: tuple[float, float, float, float]
     terrain: Terrain
+    style: TownStyle = LEGACY
 
     def cars_mesh(self, rng: np.random.Generator, change: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
         """Meshes of the parked cars of one pass: each slot keeps its usual state (car or empty)
@@ -421,11 +409,13 @@ class Town:
         fresh = _random_cars(rng, self.car_slots[:, 3])
         cars[redraw] = fresh[redraw]
         mb = MeshBuilder()
-        for (x, y, yaw, _), (occ, along, length, width, top, roof) in zip(self.car_slots, cars,
-                                                                         strict=True):
-            if occ:
-                fwd = np.array([np.cos(yaw), np.sin(yaw)])
-                car_mesh(mb, np.array([x, y]) + fwd * along, float(yaw), length, width, top, roof)
+        yaw = self.car_slots[:, 2]
+        xy = self.car_slots[:, :2] + np.c_[np.cos(yaw), np.sin(yaw)] * cars[:, 1:2]
+        z = (np.zeros(k) if self.style.legacy or not k  # the original town: on z = 0
+             else self.terrain.height(xy))
+        for j in np.flatnonzero(cars[:, 0]):
+            _, _, length, width, top, roof = cars[j]
+            car_mesh(mb, xy[j], float(yaw[j]), length, width, top, roof, float(z[j]))
         return mb.arrays()
 
     def truck_mesh(self, s: float, d: float = 3.5) -> tuple[np.ndarray, np.ndarray]:
@@ -437,6 +427,35 @@ class Town:
         mb.box(xy + fwd * 4.7, float(yaw), 2.4, 2.45, 0.5, 3.1)
         for off in (-5.0, -3.5, 4.5):  # wheels as low boxes
             mb.box(xy + fwd * off, float(yaw), 1.0, 2.5, 0.0, 0.95)
+        V, F = mb.arrays()
+        if not self.style.legacy:  # on the ground under its centre
+            V[:, 2] += np.float32(self.terrain.height(xy[None])[0])
+        return V, F
+
+    def movers_mesh(self, rng: np.random.Generator, s: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` moving road users around arc length ``s`` (metres), 6-45 m ahead or behind:
+        cars in either lane, cyclists near the kerb or the oncoming lane, pedestrians beside the
+        road (see :func:`~icpbench.datasets.clutter.mover`). Returns (vertices, triangles)."""
+        mb = MeshBuilder()
+        kinds, p = zip(*clutter.MOVER_KINDS, strict=True)
+        for _ in range(int(n)):
+            kind = str(rng.choice(kinds, p=p))
+            ds = rng.choice([-1.0, 1.0]) * rng.uniform(6.0, 45.0)
+            place = str(self.route.place_at(s + ds))
+            road_r, road_l = self.style.road[place]
+            oncoming = bool(rng.random() < 0.5)
+            if kind == "car":
+                if not oncoming and abs(ds) < 8.0:
+                    ds = float(np.sign(ds) * 8.0)
+                d = 3.5 if oncoming else 0.0
+            elif kind == "cyclist":
+                d = 3.5 + 1.0 if oncoming else max(road_r + 0.8, -2.2)
+            else:
+                d = road_r - 1.0 if rng.random() < 0.5 else road_l + 1.0
+            xy, h = self.route.pose(s + ds, d)
+            yaw = float(h) + (np.pi if oncoming else 0.0) + rng.normal(0, 0.05)
+            z = float(self.terrain.height(xy[None])[0])
+            clutter.mover(mb, kind, xy, z, yaw, rng)
         return mb.arrays()
 
 
@@ -449,26 +468,32 @@ def _random_cars(rng: np.random.Generator, p_occupied: np.ndarray) -> np.ndarray
 
 
 def car_mesh(mb: MeshBuilder, xy: np.ndarray, yaw: float, length: float, width: float,
-             body_top: float, roof: float) -> None:
-    """A parked car (sedan/SUV proportions): a body box from 0.3 m to ``body_top`` and a cabin box
-    up to ``roof`` (metres)."""
-    mb.box(xy, yaw, length, width, 0.3, body_top)
+             body_top: float, roof: float, z: float = 0.0) -> None:
+    """A parked car (sedan/SUV proportions) on ground height ``z``: a body box from 0.3 m to
+    ``body_top`` and a cabin box up to ``roof`` (metres above the ground)."""
+    mb.box(xy, yaw, length, width, z + 0.3, z + body_top)
     fwd = np.array([np.cos(yaw), np.sin(yaw)])
-    mb.box(xy - fwd * 0.2, yaw, length * 0.55, width - 0.15, body_top, roof)
+    mb.box(xy - fwd * 0.2, yaw, length * 0.55, width - 0.15, z + body_top, z + roof)
 
 
 class _Placer:
     """Places objects in route coordinates, rejecting those whose footprint reaches a road."""
 
-    def __init__(self, route: Route, mb: MeshBuilder, rng: np.random.Generator) -> None:
-        self.route, self.mb, self.rng = route, mb, rng
-        bounds = [ROAD[p] for _, p in route.layout]
+    def __init__(self, route: Route, mb: MeshBuilder, rng: np.random.Generator,
+                 style: TownStyle = LEGACY, ground: Ground | None = None) -> None:
+        self.route, self.mb, self.rng, self.style = route, mb, rng, style
+        bounds = [style.road[p] for _, p in route.layout]
         self._road = np.array(bounds)
-        self.terrain = Terrain(route)
+        self.terrain = Terrain(route, ground=ground)
+
+    def sweep(self, s0: float, s1: float, d0: float, d1: float, z0: float, z1: float,
+              step: float = 2.0) -> None:
+        """:meth:`MeshBuilder.sweep` along the route, standing on the ground."""
+        self.mb.sweep(self.route, s0, s1, d0, d1, z0, z1, step, ground=self.terrain.ground)
 
     def lift(self, xy: np.ndarray, radius: float = 0.0) -> float:
         """Lowest ground height under a footprint of ``radius`` around xy (objects stand on it)."""
-        if not self.terrain.patches:
+        if self.terrain.flat:
             return 0.0
         ring = np.asarray(xy) + radius * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])
         return float(self.terrain.height(ring).min())
@@ -511,6 +536,11 @@ class _Placer:
 
     def tree(self, s: float, d: float) -> bool:
         xy, _ = self.at(s, d)
+        if self.style.clutter:  # an irregular crown
+            if not self.clear(xy, 0.0, 3.0, 3.0, 0.3):
+                return False
+            clutter.tree(self.mb, xy, self.lift(xy, 0.3), self.rng)
+            return True
         r = self.rng.uniform(1.5, 3.2)
         if not self.clear(xy, 0.0, 2 * r * 0.6, 2 * r * 0.6, 0.3):
             return False
@@ -525,72 +555,74 @@ class _Placer:
         xy, h = self.at(s, d)
         if not self.clear(xy, 0.0, 2 * radius, 2 * radius, 0.3):
             return False
-        self.mb.cylinder(xy, radius, self.lift(xy, radius), height, seg=6)
+        z = self.lift(xy, radius)
+        top = height if self.style.legacy else z + height  # the original town: absolute tops
+        self.mb.cylinder(xy, radius, z, top, seg=6)
         if arm:  # a lamp arm reaching over the road
             side = 1.0 if self.route.project(xy[None])[1][0] < 0 else -1.0
             left = np.array([-np.sin(h), np.cos(h)])
-            self.mb.box(xy + side * left * 1.2, h + np.pi / 2, 2.4, 0.25, height - 0.3, height)
+            self.mb.box(xy + side * left * 1.2, h + np.pi / 2, 2.4, 0.25, top - 0.3, top)
         return True
 
 
 def _suburb(pl: _Placer, s0: float, s1: float, slots: list) -> None:
-    rng = pl.rng
-    road_r, road_l = ROAD["suburb"]
+    rng, st = pl.rng, pl.style
+    road_r, road_l = st.road["suburb"]
     route = pl.route
     for side in (-1.0, 1.0):
         edge = road_r if side < 0 else road_l
         walk = (edge - 2.0, edge) if side < 0 else (edge, edge + 2.0)
-        pl.mb.sweep(route, s0, s1, walk[0], walk[1], 0.0, 0.15)  # sidewalk + curb
+        pl.sweep(s0, s1, walk[0], walk[1], 0.0, 0.15)  # sidewalk + curb
         lot_edge = abs(edge) + 2.0
         crossings = np.arange(s0 + rng.uniform(60, 120), s1 - 20, rng.uniform(100, 150))
         s = s0 + rng.uniform(0, 8)
         while s < s1 - 8:
-            lot = rng.uniform(14, 22)
+            lot = rng.uniform(*st.lot_m)
             sc = s + lot / 2
             if any(abs(sc - c) < 10 for c in crossings):  # side street: leave a gap
                 s += lot
                 continue
-            length, width = rng.uniform(8, 14), rng.uniform(8, 12)
-            setback = rng.uniform(*SUBURB_SETBACK_M)
+            length, width = rng.uniform(*st.house_len_m), rng.uniform(*st.house_wid_m)
+            setback = rng.uniform(*st.setback_m)
             dyaw = rng.normal(0, np.deg2rad(6))
             if rng.random() < 0.2:
                 dyaw += rng.choice([-1, 1]) * np.deg2rad(rng.uniform(20, 45))
             roof = rng.uniform(1.5, 3.0) if rng.random() < 0.7 else 0.0
             pl.house(sc, side * (lot_edge + setback + width / 2), dyaw, min(length, lot - 2), width,
-                     rng.uniform(3.0, 6.5), roof)
+                     rng.uniform(*st.house_h_m), roof)
             if rng.random() < 0.3:  # a shed or garage at an arbitrary angle behind the house
                 pl.box(sc + rng.uniform(-4, 4), side * (lot_edge + setback + width + rng.uniform(3, 7)),
                        rng.uniform(0, np.pi), rng.uniform(3, 6), rng.uniform(3, 5), 0.0,
                        rng.uniform(2.2, 3.2))
-            if rng.random() < 0.6:  # front fence with a driveway gap
+            if rng.random() < st.fence_front_p:  # front fence with a driveway gap
                 gap = rng.uniform(3, 4)
                 fl = lot - gap - 0.5
                 if fl > 2:
                     pl.box(s + fl / 2, side * (lot_edge + 0.2), 0.0, fl, 0.1, 0.0, rng.uniform(1.0, 1.8),
                            margin=0.2)
-            if rng.random() < 0.5:  # fence between lots, perpendicular to the street
+            if rng.random() < st.fence_side_p:  # fence between lots, perpendicular to the street
                 depth = rng.uniform(8, 18)
                 pl.box(s, side * (lot_edge + 0.5 + depth / 2), np.pi / 2, depth, 0.1, 0.0,
                        rng.uniform(1.2, 2.0), margin=0.2)
-            for _ in range(rng.integers(0, 3)):
+            for _ in range(rng.integers(0, st.trees_per_lot)):
                 pl.tree(s + rng.uniform(0, lot), side * (lot_edge + rng.uniform(1.0, max(setback, 1.5))))
             s += lot
-        for sl in np.arange(s0 + rng.uniform(0, 30), s1, 35.0):  # street lamps
+        for sl in np.arange(s0 + rng.uniform(0, 30), s1, st.lamp_spacing_m):  # street lamps
             pl.pole(sl, side * (lot_edge - 0.6), 7.0, 0.12, arm=True)
         slot_d = edge + 1.1 if side < 0 else edge - 1.1
         for sc in np.arange(s0 + 4, s1 - 4, 6.5):  # kerbside parking
             if any(abs(sc - c) < 10 for c in crossings):
                 continue
             xy, h = route.pose(sc, slot_d)
-            slots.append([xy[0], xy[1], h, 0.35])
+            slots.append([xy[0], xy[1], h, st.kerb_occupancy])
 
 
 def _parking(pl: _Placer, s0: float, s1: float, slots: list) -> None:
     rng = pl.rng
-    road_r, road_l = ROAD["parking"]
+    road_r, road_l = pl.style.road["parking"]
     route = pl.route
-    pl.mb.sweep(route, s0, s1, road_r - 0.3, road_r, 0.0, 0.15)
-    pl.mb.sweep(route, s0, s1, road_l, road_l + 0.3, 0.0, 0.15)
+    pl.sweep(s0, s1, road_r - 0.3, road_r, 0.0, 0.15)
+    pl.sweep(s0, s1, road_l, road_l + 0.3, 0.0, 0.15)
     lot0, lot1 = s0 + 15, s1 - 15
     islands = [lot0 + rng.uniform(10, 30)]  # planted islands break the double row irregularly
     while islands[-1] < lot1 - 30:
@@ -603,7 +635,7 @@ def _parking(pl: _Placer, s0: float, s1: float, slots: list) -> None:
         while sc < lot1:  # spaces of uneven width, so a shifted row never matches itself
             if min(abs(sc - si) for si in islands) >= 2.6:
                 xy, h = route.pose(sc, road_r - row_d)
-                slots.append([xy[0], xy[1], h + np.pi / 2, 0.4])
+                slots.append([xy[0], xy[1], h + np.pi / 2, pl.style.lot_occupancy])
             sc += rng.uniform(2.5, 3.2)
     for dd in (12.75, 22.0):  # tall lamp posts between and behind the rows, irregularly spaced
         sl = lot0 + rng.uniform(0, 15)
@@ -639,7 +671,7 @@ def _field(pl: _Placer, s0: float, s1: float, slots: list) -> None:
     hedgerows running away from the road every 25-45 m; a few utility poles and trees, now and
     then a barn. Vertical structure is sparse; the ground (banks included) dominates."""
     rng = pl.rng
-    road_r, road_l = ROAD["field"]
+    road_r, road_l = pl.style.road["field"]
     for side, edge in ((-1.0, -road_r), (1.0, road_l)):
         patch = HillPatch(s0, s1, side, edge, bank_m=rng.uniform(1.5, 2.5), amp_m=0.0,
                           wave_s_m=50.0, wave_e_m=30.0, phase_s=0.0, phase_e=0.0)
@@ -652,7 +684,7 @@ def _field(pl: _Placer, s0: float, s1: float, slots: list) -> None:
             s += rng.uniform(25, 45)
     for sc in np.arange(s0 + rng.uniform(0, 60), s1, 60.0):  # utility poles on the left
         pl.pole(sc, road_l + 3.0, 9.0, 0.14)
-    for _ in range(rng.poisson((s1 - s0) / 100.0)):
+    for _ in range(rng.poisson((s1 - s0) / pl.style.field_tree_every_m)):
         side = rng.choice([-1.0, 1.0])
         pl.tree(rng.uniform(s0, s1), side * rng.uniform(12, 40) + (road_l if side > 0 else road_r))
     for sc in np.arange(s0 + rng.uniform(40, 150), s1 - 30, 250.0):  # a barn or farmhouse
@@ -665,59 +697,78 @@ def _field(pl: _Placer, s0: float, s1: float, slots: list) -> None:
 
 def _highway(pl: _Placer, s0: float, s1: float, slots: list) -> None:
     rng = pl.rng
-    road_r, road_l = ROAD["highway"]
-    route = pl.route
+    road_r, road_l = pl.style.road["highway"]
     rail_d = road_r - 1.2
-    pl.mb.sweep(route, s0, s1, rail_d - 0.1, rail_d, 0.5, 0.82)  # W-beam guard rail
+    pl.sweep(s0, s1, rail_d - 0.1, rail_d, 0.5, 0.82)  # W-beam guard rail
     for sc in np.arange(s0 + 1, s1, 4.0):  # its posts
         pl.box(sc, rail_d - 0.3, 0.0, 0.15, 0.15, 0.0, 0.82, margin=0.1)
-    pl.mb.sweep(route, s0, s1, road_l + 0.6, road_l + 1.2, 0.0, 0.85)  # concrete median barrier
+    pl.sweep(s0, s1, road_l + 0.6, road_l + 1.2, 0.0, 0.85)  # concrete median barrier
     for sc in np.arange(s0 + rng.uniform(0, 60), s1, 60.0):
         pl.pole(sc, road_l + 0.9, 11.0, 0.16, arm=True)
     for sc in np.arange(s0 + rng.uniform(80, 200), s1 - 20, 350.0):  # sign gantries
         for dd in (rail_d - 1.5, road_l + 2.0):
             pl.box(sc, dd, 0.0, 0.5, 0.5, 0.0, 7.5, margin=0.1)
-        pl.mb.sweep(route, sc - 0.4, sc + 0.4, rail_d - 1.5, road_l + 2.0, 6.5, 7.5, step=0.8)
-        pl.mb.sweep(route, sc - 0.15, sc + 0.15, road_r + 1.0, road_r + 6.0, 5.2, 6.5, step=0.3)
-    for _ in range(rng.poisson((s1 - s0) / 150.0)):  # a few far trees
+        pl.sweep(sc - 0.4, sc + 0.4, rail_d - 1.5, road_l + 2.0, 6.5, 7.5, step=0.8)
+        pl.sweep(sc - 0.15, sc + 0.15, road_r + 1.0, road_r + 6.0, 5.2, 6.5, step=0.3)
+    for _ in range(rng.poisson((s1 - s0) / pl.style.highway_tree_every_m)):  # a few far trees
         side = rng.choice([-1.0, 1.0])
         pl.tree(rng.uniform(s0, s1), side * rng.uniform(15, 45) + (road_l if side > 0 else road_r))
 
 
 def _underpass(pl: _Placer, s0: float, s1: float, slots: list) -> None:
-    road_r, road_l = ROAD["underpass"]
-    route = pl.route
+    road_r, road_l = pl.style.road["underpass"]
     wr, wl = road_r - 1.0, road_l + 1.0
-    pl.mb.sweep(route, s0, s1, wr - 0.6, wr, 0.0, 7.0)
-    pl.mb.sweep(route, s0, s1, wl, wl + 0.6, 0.0, 7.0)
+    pl.sweep(s0, s1, wr - 0.6, wr, 0.0, 7.0)
+    pl.sweep(s0, s1, wl, wl + 0.6, 0.0, 7.0)
     for sc in np.arange(s0 + 6, s1 - 3, 12.0):  # pilasters
-        pl.mb.sweep(route, sc - 0.5, sc + 0.5, wr, wr + 0.5, 0.0, 7.0, step=1.0)
-        pl.mb.sweep(route, sc - 0.5, sc + 0.5, wl - 0.5, wl, 0.0, 7.0, step=1.0)
+        pl.sweep(sc - 0.5, sc + 0.5, wr, wr + 0.5, 0.0, 7.0, step=1.0)
+        pl.sweep(sc - 0.5, sc + 0.5, wl - 0.5, wl, 0.0, 7.0, step=1.0)
     span = s1 - s0
     for frac in (0.3, 0.7):  # two bridge decks crossing above
         c = s0 + frac * span
         half = min(12.0, 0.12 * span)
-        pl.mb.sweep(route, c - half, c + half, wr - 0.6, wl + 0.6, 6.0, 7.2, step=2.0)
+        pl.sweep(c - half, c + half, wr - 0.6, wl + 0.6, 6.0, 7.2, step=2.0)
 
 
 _BUILDERS = {"suburb": _suburb, "parking": _parking, "field": _field, "highway": _highway,
              "underpass": _underpass}
 
 
-def make_town(seed: int, route: Route | None = None, **route_kw) -> Town:
-    """Generate the town for ``seed`` (deterministic). ``route_kw`` go to :func:`make_route`."""
-    route = route if route is not None else make_route(seed, **route_kw)
+#: Ground cells farther than this from the route are left out of a non-flat ground (metres; beyond
+#: every sensor's range from the road).
+GROUND_BAND_M = 140.0
+
+
+def make_ground(route: Route, style: TownStyle = LEGACY) -> Ground:
+    """The ground shape (slopes, camber) of a town of this style on this route."""
+    return Ground(route, tuple(style.grade_waves), float(style.camber))
+
+
+def make_town(seed: int, route: Route | None = None, style: TownStyle = LEGACY, **route_kw) -> Town:
+    """Generate the town for ``seed`` (deterministic) in ``style`` (default: the original town).
+    ``route_kw`` go to :func:`make_route` (the style's corners and layout are used unless given)."""
+    if route is None:
+        route_kw = {"corners": style.corners, "layout": style.layout, **route_kw}
+        route = make_route(seed, **route_kw)
     rng = np.random.default_rng([seed, 23])
     mb = MeshBuilder()
     lo, hi = route.xy.min(0) - 250.0, route.xy.max(0) + 250.0
-    mb.add(np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]]),
-           np.array([[0, 1, 2], [0, 2, 3]]))
-    pl = _Placer(route, mb, rng)
+    ground = make_ground(route, style)
+    if ground.flat:
+        mb.add(np.array([[lo[0], lo[1], 0], [hi[0], lo[1], 0], [hi[0], hi[1], 0], [lo[0], hi[1], 0]]),
+               np.array([[0, 1, 2], [0, 2, 3]]))
+    else:
+        ground.mesh(mb, (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), GROUND_BAND_M)
+    pl = _Placer(route, mb, rng, style, ground)
     slots: list[list[float]] = []
     for s0, s1, place in route.intervals():
         _BUILDERS[place](pl, s0, s1, slots)
+    if style.clutter:  # its own random stream: the builders' draws do not depend on it
+        crng = np.random.default_rng([seed, 31])
+        for s0, s1, place in route.intervals():
+            clutter.add_clutter(pl, s0, s1, place, crng)
     V, F = mb.arrays()
     car_slots = np.asarray(slots, dtype=np.float64).reshape(-1, 4)
     return Town(route=route, vertices=V, triangles=F, car_slots=car_slots,
                 base_cars=_random_cars(rng, car_slots[:, 3]), terrain=pl.terrain,
-                bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
+                bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), style=style)
