@@ -73,7 +73,6 @@ class PGDAttack(Attack):
         best = clean.clone()
         with torch.no_grad():
             best_val = self._objective(icp, batch, clean)
-        alpha = self.step_size * budget_m
         for _ in range(self.restarts):
             if self.random_start:
                 d = torch.randn(clean.shape, generator=generator, dtype=torch.float64)
@@ -82,21 +81,45 @@ class PGDAttack(Attack):
                 adv = clean + d * budget_m * r ** (1.0 / 3.0)
             else:
                 adv = clean.clone()
-            for _ in range(self.steps):
-                adv = adv.detach().requires_grad_(True)
-                val = self._objective(icp, batch, adv)
-                (g,) = torch.autograd.grad(val.sum(), adv)
-                with torch.no_grad():
-                    better = val > best_val
-                    best = torch.where(better[:, None, None], adv, best)
-                    best_val = torch.where(better, val, best_val)
-                    g = torch.nan_to_num(g)
-                    gn = torch.linalg.norm(g, dim=-1, keepdim=True)
-                    adv = adv + alpha * g / torch.clamp(gn, min=1e-12)
-                    adv = project_to_ball(clean, adv, budget_m)
+            best, best_val = self._ascend(icp, batch, clean, adv, budget_m, best, best_val)
+        return best.to(batch.scans.dtype)
+
+    def _ascend(self, icp: Target, batch: Batch, clean: torch.Tensor, adv: torch.Tensor,
+                budget_m: float, best: torch.Tensor, best_val: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``self.steps`` projected normalised-gradient steps from ``adv`` (B, N, 3) inside the
+        budget balls around ``clean``; returns the best iterate per scan seen so far (including
+        ``best``/``best_val`` given, and the final iterate) and its objective (B,)."""
+        alpha = self.step_size * budget_m
+        for _ in range(self.steps):
+            adv = adv.detach().requires_grad_(True)
+            val = self._objective(icp, batch, adv)
+            (g,) = torch.autograd.grad(val.sum(), adv)
             with torch.no_grad():
-                val = self._objective(icp, batch, adv)
                 better = val > best_val
                 best = torch.where(better[:, None, None], adv, best)
                 best_val = torch.where(better, val, best_val)
+                g = torch.nan_to_num(g)
+                gn = torch.linalg.norm(g, dim=-1, keepdim=True)
+                adv = adv + alpha * g / torch.clamp(gn, min=1e-12)
+                adv = project_to_ball(clean, adv, budget_m)
+        with torch.no_grad():
+            val = self._objective(icp, batch, adv)
+            better = val > best_val
+            best = torch.where(better[:, None, None], adv, best)
+            best_val = torch.where(better, val, best_val)
+        return best, best_val
+
+    def refine(self, batch: Batch, start: torch.Tensor, budget_m: float, *,
+               surrogate: Target) -> torch.Tensor:
+        """``self.steps`` steps of projected ascent from another attack's output (test-time
+        refinement, e.g. of the generator's): ``start`` (B, N, 3) adversarial scans within the
+        budget of ``batch.scans``; returns the best of ``start`` and the iterates (B, N, 3) in the
+        batch's dtype, never worse than ``start`` on the surrogate's objective."""
+        icp = self._surrogate(surrogate)
+        clean = batch.scans.to(torch.float64)
+        start = project_to_ball(clean, start.detach().to(torch.float64), budget_m)
+        with torch.no_grad():
+            start_val = self._objective(icp, batch, start)
+        best, _ = self._ascend(icp, batch, clean, start, budget_m, start.clone(), start_val)
         return best.to(batch.scans.dtype)

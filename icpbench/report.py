@@ -23,7 +23,8 @@ PAIR_KEYS = ["sample_id", "target", "budget", "seed"]
 
 #: Display names and the paper's row order; unknown attacks go before the reference.
 DISPLAY = {"none": "Original", "uniform": "Uniform", "normal": "Normal",
-           "sector": "Sector (analytic)", "pgd": "PGD (oracle)", "generator": "Ours"}
+           "sector": "Sector (analytic)", "pgd": "PGD (oracle)", "generator": "Ours",
+           "generator-refine": "Ours + 3 steps"}
 ORDER = ["none", "uniform", "normal", "sector", "pgd"]
 
 
