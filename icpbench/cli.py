@@ -330,6 +330,9 @@ def train(
     threads: Annotated[int | None, typer.Option(help="torch threads.")] = None,
     max_minutes: Annotated[float | None, typer.Option(help="Stop after this much training.")]
     = None,
+    dataset: Annotated[str | None, typer.Option(
+        help="Training data (a registered dataset, e.g. kitti with --dataset-param root=...); "
+             "default: the preset's.")] = None,
     dataset_param: Annotated[list[str] | None, typer.Option(help="Dataset KEY=VALUE.")] = None,
     strict: Annotated[bool, typer.Option(
         help="Project displacements onto the λ-balls inside training (beyond the paper).")]
@@ -360,7 +363,7 @@ def train(
             device=device, threads=threads, max_minutes=max_minutes,
             strict=strict or None, adv_per_budget=adv_per_budget,
             init_checkpoint=init, icp_preset=icp_preset,
-            icp_backprop=icp_backprop).items() if v is not None}
+            icp_backprop=icp_backprop, dataset=dataset).items() if v is not None}
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets:
