@@ -3,7 +3,9 @@
 The generator (Zhang et al., ICRA 2025, §III-B; PointNet++ by Qi et al., NeurIPS 2017) only needs
 *indices* and *interpolation weights* that depend on the clean scan X, never on the perturbed one.
 They are computed here once per sample, outside autograd, with a C++ farthest-point sampler
-(``fpsample``) and SciPy KD-trees, so the training loop only gathers and runs shared MLPs.
+(``fpsample``) and small_gicp KD-trees (the same neighbours as SciPy's ``cKDTree``, 1.7x faster
+for the seven kNN queries of a 10,000-point scan: 42 vs 72 ms, docs/performance.md), so the
+training loop only gathers and runs shared MLPs.
 
 Levels and index spaces (``n1 = N``, ``n_k = floor(N / a_k)`` with ``(a_2, a_3, a_4) = (a, b, c)``):
 
@@ -43,8 +45,8 @@ from typing import Any, Literal
 
 import fpsample
 import numpy as np
+import small_gicp
 import torch
-from scipy.spatial import cKDTree
 
 from icpbench.errors import InputError
 from icpbench.types import validate_cloud
@@ -219,10 +221,11 @@ def farthest_point_indices(points: np.ndarray, n_samples: int, method: FPSMethod
     return np.asarray(idx, dtype=np.int64)
 
 
-def _knn(tree: cKDTree, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and indices (Q, k) of the k nearest tree points of each query (2-D even for k=1)."""
-    d, i = tree.query(queries, k=k)
-    return np.reshape(d, (len(queries), k)), np.reshape(i, (len(queries), k))
+def _knn(tree: Any, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices (Q, k) of the k nearest tree points of each query (a small_gicp
+    ``KdTree``; neighbours in order of distance)."""
+    i, d2 = tree.batch_knn_search(np.ascontiguousarray(queries, dtype=np.float64), k)
+    return np.sqrt(np.asarray(d2, dtype=np.float64)), np.asarray(i).astype(np.int64)
 
 
 def _idw(dist: np.ndarray, power: float) -> np.ndarray:
@@ -256,7 +259,7 @@ def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig |
             f"needs n4 >= k_interp: use at least {cfg.min_points()} points or smaller a, b, c, K")
     fps = farthest_point_indices(x, n2, cfg.fps)
     lvl = [x, x[fps], x[fps[:n3]], x[fps[:n4]]]
-    trees = [cKDTree(p) for p in lvl]
+    trees = [small_gicp.KdTree(np.ascontiguousarray(p)) for p in lvl]
     groups = [_knn(trees[0], lvl[0], cfg.k)[1]]
     for k in (1, 2, 3):  # level k+1 centroids grouped over level k
         groups.append(_knn(trees[k - 1], lvl[k], cfg.k)[1])

@@ -79,6 +79,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from icpbench.errors import InputError
+from icpbench.generator import fast
 from icpbench.generator.geometry import Geometry, GeometryConfig, compute_geometry_batch
 from icpbench.generator.prior import PRIOR_CHANNELS
 
@@ -470,7 +471,11 @@ class Generator(nn.Module):
                 h = h + self.glob(feats[3].amax(-1))[:, :, None]  # (B, 256, 1): same for all points
             if i < len(self.head) - 1:
                 h = F.relu(h, inplace=True)
-        out = h.transpose(1, 2)  # (B, N, 3)
+        return self._output(x, h.transpose(1, 2), budget, prior)
+
+    def _output(self, x: Tensor, out: Tensor, budget: Tensor | None, prior: Tensor | None
+                ) -> Tensor:
+        """Adversarial scans (B, N, 3) in ``x``'s dtype from the head's output ``out`` (B, N, 3)."""
         if prior is not None:
             assert self.prior_gain is not None
             out = out + self.prior_gain * prior[..., 0:3].to(out.dtype)
@@ -497,6 +502,8 @@ class Generator(nn.Module):
         B = x.shape[0]
         self._check_budget(budget, B)
         self._check_prior(prior, x)
+        if fast.eligible(self, x):  # no autograd: the same function, channels-last (fast.py)
+            return self._output(x, fast.forward(self, x, geo, budget, prior), budget, prior)
         step = self._chunk(x)
         if step >= B:
             return self.decode(x, geo, self.encode(x, geo, prior), budget, prior=prior)
