@@ -132,8 +132,11 @@ def _town_figure(ds: Any, path: Path) -> None:
 
 def _draw_heights(ax: Any, H: np.ndarray, extent: tuple[float, float, float, float]) -> Any:
     """Structures taller than 0.3 m in grey (darker = taller, black from 8 m); returns the image."""
+    from matplotlib.colors import LinearSegmentedColormap
+
+    greys = LinearSegmentedColormap.from_list("greys", plt.get_cmap("Greys")(np.linspace(0.23, 1, 64)))
     shade = np.where(H < 0.3, np.nan, H)  # ground, curbs and sidewalks stay white
-    return ax.imshow(shade, origin="lower", extent=extent, cmap="Greys", vmin=-0.3 * 8.0, vmax=8.0,
+    return ax.imshow(shade, origin="lower", extent=extent, cmap=greys, vmin=0.0, vmax=8.0,
                      interpolation="nearest")
 
 
@@ -172,7 +175,7 @@ def towns_figure(datasets: list[Any], path: str | Path) -> Path:
         raise InputError("towns_figure needs at least one lidar-sim dataset")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig, axes = plt.subplots(1, len(datasets), figsize=(6.5 * len(datasets), 6.8), dpi=150,
+    fig, axes = plt.subplots(1, len(datasets), figsize=(6.5 * len(datasets), 6.4), dpi=150,
                              squeeze=False)
     im = None
     for k, (ax, ds) in enumerate(zip(axes[0], datasets, strict=True)):
@@ -184,8 +187,9 @@ def towns_figure(datasets: list[Any], path: str | Path) -> Path:
         ax.set_title(f"{_town_name(ds)}: {ds.route.length / 1000:.2f} km, "
                      f"{len(ds.route.layout)} stretches\nroad height {z.min():+.1f} to "
                      f"{z.max():+.1f} m, camber {100 * ds.ground.camber:.1f} %", fontsize=10)
-    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.7, label="structure height above ground (m)")
-    fig.savefig(path, bbox_inches="tight")
+    fig.tight_layout(rect=(0, 0, 0.94, 1))
+    fig.colorbar(im, cax=fig.add_axes((0.95, 0.2, 0.01, 0.6)), label="structure height above ground (m)")
+    fig.savefig(path)
     plt.close(fig)
     return path
 
@@ -203,7 +207,7 @@ def sensors_figure(datasets: list[Any], path: str | Path, *, pass_id: int = 1, f
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n = len(datasets)
-    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 5.2), dpi=150, sharex=True, sharey=True,
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 5.4), dpi=150, sharex=True, sharey=True,
                              squeeze=False)
     sc = None
     for ax, ds in zip(axes[0], datasets, strict=True):
@@ -224,12 +228,13 @@ def sensors_figure(datasets: list[Any], path: str | Path, *, pass_id: int = 1, f
         ax.set_title(f"{ds.sensor}: {ds.lidar.n_beams} beams, {el.min():+.1f} to "
                      f"{el.max():+.1f} deg\n{len(P)} returns (subsampled to {ds.n_points})", fontsize=10)
     axes[0][0].set_ylabel("y, lateral (m)")
-    fig.colorbar(sc, ax=axes[0].tolist(), shrink=0.8, label="z in the sensor frame (m)")
     ds = datasets[0]
     fig.suptitle(f"lidar-sim {_town_name(ds)}, pass {pass_id}, location {frame} "
                  f"({ds.route.place_at(ds.live_pose(pass_id, frame)[0])}): full sweeps within "
-                 f"{radius_m:g} m", y=1.02)
-    fig.savefig(path, bbox_inches="tight")
+                 f"{radius_m:g} m")
+    fig.tight_layout(rect=(0, 0, 0.93, 0.95))
+    fig.colorbar(sc, cax=fig.add_axes((0.945, 0.15, 0.01, 0.65)), label="z in the sensor frame (m)")
+    fig.savefig(path)
     plt.close(fig)
     return path
 
