@@ -9,10 +9,11 @@ lambda), so both numbers are reported and never hidden.
 
 from __future__ import annotations
 
+import hashlib
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, final
 
 import torch
 
@@ -21,6 +22,10 @@ from icpbench.targets.base import Target
 from icpbench.types import Batch
 
 STAT_COLUMNS = ("disp_max", "disp_mean", "disp_p95", "frac_over_budget")
+
+#: Largest budget accepted (metres, or normalised units): far beyond any scene, small enough that
+#: moving a float32 scan by it stays finite.
+MAX_BUDGET = 1e6
 
 
 @dataclass
@@ -41,13 +46,17 @@ class AttackOutput:
 
 
 def validate_budget(budget_m: float) -> float:
-    """Return the budget as float; raise InputError for negative, zero, NaN or Inf budgets."""
+    """Return the budget as float; raise InputError for negative, zero, NaN, Inf or absurdly large
+    (> :data:`MAX_BUDGET`) budgets."""
     try:
         b = float(budget_m)
     except (TypeError, ValueError) as exc:
         raise InputError(f"budget must be a number, got {budget_m!r}") from exc
     if not (b > 0 and b < float("inf")):
         raise InputError(f"budget must be a positive finite number of metres, got {budget_m!r}")
+    if b > MAX_BUDGET:
+        raise InputError(f"budget must be a positive finite number of metres <= {MAX_BUDGET:g}, "
+                         f"got {budget_m!r}")
     return b
 
 
@@ -83,39 +92,126 @@ def displacement_stats(clean: torch.Tensor, adv: torch.Tensor, budget_m: float,
         }
 
 
-class Attack(ABC):
-    """Base class of every attack.
+def sample_seed(seed: int, attack: str, budget_m: float, sample_id: str) -> int:
+    """The seed of one sample's random stream: a stable 63-bit hash of (attack seed, attack name,
+    budget, sample id). It does not depend on the batch the sample is in, on the batch size or on
+    the executor, so neither do a random attack's rows."""
+    text = f"{int(seed)}|{attack}|{float(budget_m)!r}|{sample_id}"
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:8], "big") >> 1
 
-    Subclasses set ``name``/``description`` (and ``needs_surrogate=True`` if they need a
-    differentiable target's gradients) and implement :meth:`_perturb`. Callers use :meth:`run`
-    (scans + audit) or :meth:`perturb` (scans only).
+
+class SampleGenerators:
+    """One ``torch.Generator`` per sample of a batch: the only source of an attack's randomness.
+
+    An attack draws each sample's random numbers from that sample's generator
+    (:meth:`rand`/:meth:`randn` do it for the whole batch), so a sample's draws are the same
+    whichever batch it is in.
+
+    Args:
+        generators: B generators, in batch order.
+    """
+
+    def __init__(self, generators: Sequence[torch.Generator]) -> None:
+        self.generators = list(generators)
+
+    @classmethod
+    def for_batch(cls, batch: Batch, seed: int, attack: str, budget_m: float) -> SampleGenerators:
+        """Generators seeded with :func:`sample_seed` of each sample of ``batch``."""
+        return cls([torch.Generator().manual_seed(sample_seed(seed, attack, budget_m, s.id))
+                    for s in batch.samples])
+
+    def __len__(self) -> int:
+        return len(self.generators)
+
+    def __getitem__(self, b: int) -> torch.Generator:
+        return self.generators[b]
+
+    def rand(self, *shape: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """(B, *shape) uniform numbers in [0, 1); row b drawn from sample b's generator."""
+        return torch.stack([torch.rand(shape, generator=g, dtype=dtype) for g in self.generators])
+
+    def randn(self, *shape: int, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """(B, *shape) standard normal numbers; row b drawn from sample b's generator."""
+        return torch.stack([torch.randn(shape, generator=g, dtype=dtype) for g in self.generators])
+
+
+class Attack(ABC):
+    """Base class of every attack, and the whole contract between an attack plugin and the runner.
+
+    A subclass sets the class attributes below and implements :meth:`_perturb`; everything else
+    (budget checks, the surrogate check, per-sample random streams, the displacement audit, strict
+    projection) is done here, once, by :meth:`run`, which subclasses cannot override. Callers use
+    :meth:`run` (scans + audit) or :meth:`perturb` (scans only).
+
+    Construction: the runner calls ``cls(strict=..., **settings)``, where the settings are the user's
+    ``--attack-param NAME.KEY=VALUE`` values, checked against :meth:`param_types` (the named keyword
+    parameters of ``__init__``) before the attack is built, plus ``dataset=`` and ``icp_preset=``
+    when the class sets :attr:`wants_context`.
 
     Args:
         strict: project every point's displacement onto its budget ball after the attack.
     """
 
+    #: Registry key; must equal the entry-point name the plugin is registered under.
     name: ClassVar[str] = ""
+    #: One line for ``icpbench list``.
     description: ClassVar[str] = ""
+    #: The attack needs gradients: :meth:`run` then requires a differentiable ``surrogate`` target
+    #: (one with ``differentiable = True``; the runner passes ``--surrogate``, default ``p2plane``).
+    #: A surrogate's iteration cap can be changed with :meth:`Target.with_max_iterations`.
     needs_surrogate: ClassVar[bool] = False
+    #: The constructor also receives ``dataset`` (the dataset's registry name) and ``icp_preset``
+    #: (the run's ICP preset), e.g. so that the generator picks the checkpoint shipped for the data.
+    wants_context: ClassVar[bool] = False
+    #: The attack's output depends neither on the budget nor on its random streams (the clean scan
+    #: of ``none``): the runner then registers a batch once and reuses it for every budget.
+    budget_invariant: ClassVar[bool] = False
 
     def __init__(self, *, strict: bool = False, **params: Any) -> None:
         self.strict = bool(strict)
-        self.params = params
+        self.params = params  # a subclass passes its own settings here to record them
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "run" in cls.__dict__:
+            raise TypeError(f"{cls.__name__} overrides Attack.run, which is final (it enforces the "
+                            "budget, the surrogate and the displacement audit); implement _perturb")
+
+    @classmethod
+    def param_types(cls) -> dict[str, Any]:
+        """Settings the attack accepts (name -> type hint): the named keyword parameters of its
+        ``__init__`` (``**params`` is not a setting: it only carries a subclass's settings to this
+        base class) except ``strict``, which is the run's ``--strict``. Unknown settings are
+        refused and values are coerced to these types."""
+        from icpbench.registry import keyword_params
+
+        return keyword_params(cls.__init__, skip=("strict",))
 
     @abstractmethod
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None,
-                 generator: torch.Generator) -> torch.Tensor | tuple[torch.Tensor, dict]:
-        """Return adversarial scans (B, N, 3), or (scans, extra) with per-sample extras."""
+                 generator: SampleGenerators) -> torch.Tensor | tuple[torch.Tensor, dict]:
+        """Return adversarial scans (B, N, 3), or (scans, extra) with per-sample (B,) extras.
 
+        Args:
+            batch: the clean scans (B, N, 3), sensor frame, and their samples and maps.
+            budget_m: the per-point budget lambda (already validated).
+            surrogate: the differentiable target (when :attr:`needs_surrogate`), else maybe None.
+            generator: one random stream per sample; draw sample b's numbers from
+                ``generator[b]`` (or use ``generator.rand``/``randn``) and nothing else.
+        """
+
+    @final
     def run(self, batch: Batch, budget_m: float, *, surrogate: Target | None = None,
-            generator: torch.Generator | int | None = None) -> AttackOutput:
+            generator: SampleGenerators | torch.Generator | int | None = None) -> AttackOutput:
         """Attack a batch and audit the displacement.
 
         Args:
             batch: clean scans (B, N, 3) and their samples/maps.
             budget_m: per-point perturbation budget lambda (metres, or normalised units for objects).
             surrogate: differentiable target used for gradients (required if ``needs_surrogate``).
-            generator: the only source of randomness: a ``torch.Generator`` or an int seed.
+            generator: the attack seed (an int; a ``torch.Generator`` stands for its initial seed;
+                None = 0), from which each sample gets its own stream (:func:`sample_seed` of seed,
+                attack name, budget and sample id), or ready :class:`SampleGenerators`.
         """
         budget_m = validate_budget(budget_m)
         if self.needs_surrogate:
@@ -126,9 +222,10 @@ class Attack(ABC):
                     f"attack {self.name!r} needs a differentiable surrogate; "
                     f"{surrogate.name!r} is a black box (use p2plane or p2point as surrogate)"
                 )
-        if not isinstance(generator, torch.Generator):
-            seed = 0 if generator is None else int(generator)
-            generator = torch.Generator().manual_seed(seed)
+        if not isinstance(generator, SampleGenerators):
+            seed = (generator.initial_seed() if isinstance(generator, torch.Generator)
+                    else 0 if generator is None else int(generator))
+            generator = SampleGenerators.for_batch(batch, seed, self.name, budget_m)
         out = self._perturb(batch, budget_m, surrogate=surrogate, generator=generator)
         adv, extra = out if isinstance(out, tuple) else (out, {})
         if adv.shape != batch.scans.shape:
@@ -153,7 +250,7 @@ class Attack(ABC):
                             extra={k: torch.as_tensor(v) for k, v in extra.items()})
 
     def perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None = None,
-                generator: torch.Generator | int | None = None) -> torch.Tensor:
+                generator: SampleGenerators | torch.Generator | int | None = None) -> torch.Tensor:
         """Adversarial scans (B, N, 3); see :meth:`run` for the audit."""
         return self.run(batch, budget_m, surrogate=surrogate, generator=generator).scans
 

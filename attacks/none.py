@@ -15,6 +15,7 @@ class NoAttack(Attack):
 
     name: ClassVar[str] = "none"
     description: ClassVar[str] = "No perturbation: the clean scan (Table 1's 'Original' row)"
+    budget_invariant: ClassVar[bool] = True
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate, generator) -> torch.Tensor:
         return batch.scans.clone()

@@ -58,10 +58,7 @@ class PGDAttack(Attack):
         self.w = weight_vector(weights)
 
     def _surrogate(self, surrogate: Target) -> Target:
-        cfg = getattr(surrogate, "config", None)
-        if cfg is None:
-            return surrogate
-        return type(surrogate)(cfg.with_(max_iterations=self.icp_iterations))
+        return surrogate.with_max_iterations(self.icp_iterations)
 
     def _objective(self, icp: Target, batch: Batch, adv: torch.Tensor) -> torch.Tensor:
         reg = icp.register(adv, batch.maps, batch.T_init)
@@ -75,9 +72,9 @@ class PGDAttack(Attack):
             best_val = self._objective(icp, batch, clean)
         for _ in range(self.restarts):
             if self.random_start:
-                d = torch.randn(clean.shape, generator=generator, dtype=torch.float64)
+                d = generator.randn(*clean.shape[1:], dtype=torch.float64)  # per-sample streams
                 d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
-                r = torch.rand(clean.shape[:-1] + (1,), generator=generator, dtype=torch.float64)
+                r = generator.rand(clean.shape[1], 1, dtype=torch.float64)
                 adv = clean + d * budget_m * r ** (1.0 / 3.0)
             else:
                 adv = clean.clone()

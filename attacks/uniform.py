@@ -12,14 +12,15 @@ from typing import ClassVar
 
 import torch
 
-from icpbench.attacks.base import Attack
+from icpbench.attacks.base import Attack, SampleGenerators
 from icpbench.types import Batch
 
 
-def random_xy_directions(batch: Batch, generator: torch.Generator) -> torch.Tensor:
-    """Unit directions (B, 3) in the sensor frame that lie in the map-frame x-y plane under T_init."""
+def random_xy_directions(batch: Batch, generator: SampleGenerators) -> torch.Tensor:
+    """Unit directions (B, 3) in the sensor frame that lie in the map-frame x-y plane under T_init;
+    sample b's angle is drawn from its own stream ``generator[b]``."""
     B = len(batch)
-    angle = torch.rand(B, generator=generator, dtype=torch.float64) * 2 * math.pi
+    angle = generator.rand(dtype=torch.float64) * 2 * math.pi  # (B,)
     d_map = torch.stack([torch.cos(angle), torch.sin(angle), torch.zeros(B, dtype=torch.float64)], -1)
     R_init = batch.T_init[:, :3, :3]
     return (R_init.transpose(1, 2) @ d_map[..., None])[..., 0]

@@ -5,6 +5,7 @@ User errors (bad names, budgets, files, checkpoints) exit with status 2 and one 
 
 from __future__ import annotations
 
+import math
 import re
 import sys
 from pathlib import Path
@@ -77,12 +78,24 @@ def _floats(text: str, what: str) -> list[float]:
 
 
 def _kv(item: str, flag: str) -> tuple[str, object]:
+    """``KEY=VALUE`` with the value read as YAML (numbers, true/false, lists); a value with a
+    leading zero (a KITTI sequence ``00``) stays text; an empty value is refused."""
     import yaml
 
     if "=" not in item:
         raise typer.BadParameter(f"{flag} expects KEY=VALUE, got {item!r}")
     k, v = item.split("=", 1)
-    return k.strip(), yaml.safe_load(v)
+    if not k.strip():
+        raise typer.BadParameter(f"{flag} expects KEY=VALUE, got {item!r} (no key)")
+    if not v.strip():
+        raise typer.BadParameter(f"{flag} {item!r} has no value; give KEY=VALUE (use KEY=null for "
+                                 "none)")
+    if re.fullmatch(r"0\d+", v.strip()):
+        return k.strip(), v.strip()
+    try:
+        return k.strip(), yaml.safe_load(v)
+    except yaml.YAMLError:
+        return k.strip(), v
 
 
 def _flat(items: list[str] | None, flag: str) -> dict:
@@ -98,6 +111,29 @@ def _nested(items: list[str] | None, flag: str) -> dict[str, dict]:
         name, key = k.split(".", 1)
         out.setdefault(name, {})[key] = v
     return out
+
+
+def _out_dir(out: str, flag: str = "--out") -> Path:
+    if not out.strip():
+        raise typer.BadParameter(f"{flag} is empty; give a folder")
+    return Path(out)
+
+
+def _interrupted(out: Path | None) -> None:
+    """Ctrl-C: say where the finished work is and that the same command resumes; exit 130."""
+    where = f" in {out}" if out is not None else ""
+    typer.echo(f"\ninterrupted: the finished work is saved{where}; re-run the same command to "
+               "resume where it stopped", err=True)
+    raise typer.Exit(130)
+
+
+def _check_reference(reference: str, attacks: list[str] | set[str]) -> None:
+    """``--reference`` must name a registered attack or one in the results."""
+    from icpbench import registry
+
+    if reference not in attacks and reference not in registry.attacks.names():
+        raise typer.BadParameter(f"--reference {reference!r} is not an attack; valid: "
+                                 f"{', '.join(sorted(set(registry.attacks.names()) | set(attacks)))}")
 
 
 @app.command("list")
@@ -117,23 +153,35 @@ def list_plugins() -> None:
 
 @app.command()
 def run(
-    attacks: Annotated[str, typer.Option(help="'all' or comma-separated attack names.")] = "all",
-    targets: Annotated[str, typer.Option(help="Comma-separated target names.")] = "p2plane",
-    dataset: Annotated[str, typer.Option(help="Registered dataset name.")] = "lidar-sim",
+    config: Annotated[Path | None, typer.Option(
+        help="A YAML file of run settings (RunConfig fields) or a previous run's manifest.json "
+             "(repeats that run); options given here override it.")] = None,
+    attacks: Annotated[str | None, typer.Option(
+        help="'all' or comma-separated attack names. [default: all]")] = None,
+    targets: Annotated[str | None, typer.Option(
+        help="Comma-separated target names. [default: p2plane]")] = None,
+    dataset: Annotated[str | None, typer.Option(
+        help="Registered dataset name. [default: lidar-sim]")] = None,
     budgets: Annotated[str | None, typer.Option(
-        help="Comma-separated budgets λ (metres; default: the dataset's).")] = None,
-    samples: Annotated[int | None, typer.Option(help="Number of test samples (default all).")] = None,
-    seed: Annotated[str, typer.Option(help="Attack seed(s), comma-separated.")] = "0",
-    surrogate: Annotated[str, typer.Option(help="Differentiable target for gradient attacks.")]
-    = "p2plane",
-    split: Annotated[str, typer.Option(help="Dataset split.")] = "test",
-    strict: Annotated[bool, typer.Option(help="Project displacements onto the λ-ball.")] = False,
-    batch_size: Annotated[int, typer.Option(help="Samples per batch.")] = 8,
-    threads: Annotated[int, typer.Option(help="torch threads (1 is fastest on small CPUs).")] = 1,
+        help="Comma-separated budgets λ (metres). [default: the dataset's]")] = None,
+    samples: Annotated[int | None, typer.Option(
+        help="Number of test samples. [default: all]")] = None,
+    seed: Annotated[str | None, typer.Option(help="Attack seed(s), comma-separated. [default: 0]")]
+    = None,
+    surrogate: Annotated[str | None, typer.Option(
+        help="Differentiable target for gradient attacks. [default: p2plane]")] = None,
+    split: Annotated[str | None, typer.Option(help="Dataset split. [default: test]")] = None,
+    strict: Annotated[bool | None, typer.Option(
+        "--strict/--no-strict", help="Project displacements onto the λ-ball. [default: no]")]
+    = None,
+    batch_size: Annotated[int | None, typer.Option(
+        help="Samples per batch (results do not depend on it). [default: 8]")] = None,
+    threads: Annotated[int | None, typer.Option(
+        help="torch threads (1 is fastest on small CPUs). [default: 1]")] = None,
     reference: Annotated[str, typer.Option(help="Reference attack of '% Ours is Larger'.")]
     = "generator",
-    out: Annotated[Path, typer.Option(help="Results directory (re-run to resume).")]
-    = Path("runs/latest"),
+    out: Annotated[str, typer.Option(help="Results directory (re-run to resume).")]
+    = "runs/latest",
     attack_param: Annotated[list[str] | None, typer.Option(
         help="Attack setting NAME.KEY=VALUE, repeatable (e.g. generator.checkpoint=gen.pt).")]
     = None,
@@ -142,41 +190,68 @@ def run(
     = None,
     dataset_param: Annotated[list[str] | None, typer.Option(
         help="Dataset setting KEY=VALUE, repeatable (e.g. root=/data/kitti).")] = None,
-    executor: Annotated[str, typer.Option(
+    executor: Annotated[str | None, typer.Option(
         help="Where units run: local (this process) or ray (a Ray cluster: RAY_ADDRESS, else a "
-             "local one; pip install 'icpbench[ray]'). Results are the same.")] = "local",
-    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+             "local one; pip install 'icpbench[ray]'). Results are the same. [default: local]")]
+    = None,
+    strict_files: Annotated[bool | None, typer.Option(
+        "--strict-files/--no-strict-files",
+        help="Stop at a sample whose input file is bad instead of skipping it with a warning. "
+             "[default: no]")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
-    """Run the grid samples x attacks x targets x budgets x seeds and print Table 1."""
-    from icpbench import registry
+    """Run the grid samples x attacks x targets x budgets x seeds and print Table 1.
+
+    Defaults are those of icpbench.runner.RunConfig; --config FILE replaces them, options given
+    on the command line override both.
+    """
     from icpbench.report import render, table1, transfer_frame
     from icpbench.results import load_results
     from icpbench.runner import RunConfig
     from icpbench.runner import run as run_grid
 
+    out_dir: Path | None = None
     try:
-        if threads < 1:
-            raise typer.BadParameter(f"--threads must be >= 1, got {threads}")
-        ds_cls = registry.datasets.get(dataset)
-        cfg = RunConfig(
-            dataset=dataset, attacks=registry.attacks.resolve(attacks),
-            targets=registry.targets.resolve(targets),
-            budgets=_floats(budgets, "--budgets") if budgets else list(ds_cls.default_budgets),
-            samples=samples, seeds=_ints(seed, "--seed"), surrogate=surrogate,
-            split=split, strict=strict, batch_size=batch_size, threads=threads,
-            attack_params=_nested(attack_param, "--attack-param"),
-            target_params=_nested(target_param, "--target-param"),
-            dataset_params=_flat(dataset_param, "--dataset-param"), executor=executor)
-        run_grid(cfg, out, progress=not quiet)
-        df = load_results(out)
+        out_dir = _out_dir(out)
+        base = RunConfig.from_file(config) if config is not None else RunConfig()
+        given: dict[str, object] = {
+            "attacks": attacks, "targets": targets, "dataset": dataset,
+            "budgets": None if budgets is None else _floats(budgets, "--budgets"),
+            "samples": samples, "seeds": None if seed is None else _ints(seed, "--seed"),
+            "surrogate": surrogate, "split": split, "strict": strict, "batch_size": batch_size,
+            "threads": threads, "executor": executor, "strict_files": strict_files}
+        if budgets is not None and not given["budgets"]:
+            raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
+        if seed is not None and not given["seeds"]:
+            raise typer.BadParameter(f"--seed has no numbers: {seed!r}")
+        if dataset is not None and config is not None and dataset != base.dataset:
+            base.dataset_params = {}  # another dataset: the file's dataset settings do not apply
+            if budgets is None:
+                base.budgets = None
+        for k, v in given.items():
+            if v is not None:
+                setattr(base, k, v)
+        for flag, field_, items in (("--attack-param", "attack_params", attack_param),
+                                    ("--target-param", "target_params", target_param)):
+            merged = {n: dict(p) for n, p in getattr(base, field_).items()}
+            for n, p in _nested(items, flag).items():
+                merged.setdefault(n, {}).update(p)
+            setattr(base, field_, merged)
+        base.dataset_params = {**base.dataset_params, **_flat(dataset_param, "--dataset-param")}
+        cfg = base.validate()
+        _check_reference(reference, cfg.attacks)
+        run_grid(cfg, out_dir, progress=not quiet)
+        df = load_results(out_dir)
         for t in cfg.targets:
-            typer.echo(f"\nTable 1 ({dataset}, target {t}):\n")
+            typer.echo(f"\nTable 1 ({cfg.dataset}, target {t}):\n")
             typer.echo(table1(df, "md", reference=reference, target=t))
         if len(cfg.targets) > 1:
             for b in cfg.budgets:
-                typer.echo(f"\nTransfer table (λ={b:g}, surrogate {surrogate}):\n")
+                typer.echo(f"\nTransfer table (λ={b:g}, surrogate {cfg.surrogate}):\n")
                 typer.echo(render(transfer_frame(df, b), "md"))
-        typer.echo(f"\nresults: {out}/results.csv  manifest: {out}/manifest.json")
+        typer.echo(f"\nresults: {out_dir}/results.csv  manifest: {out_dir}/manifest.json")
+    except KeyboardInterrupt:
+        _interrupted(out_dir)
     except Exception as exc:
         _user_error(exc)
 
@@ -189,16 +264,27 @@ def table(
     target: Annotated[str | None, typer.Option(help="Target (needed if several).")] = None,
     transfer: Annotated[float | None, typer.Option(
         help="Print the attacks x targets table at this budget instead.")] = None,
-    out: Annotated[Path | None, typer.Option(help="Write to this file instead of stdout.")] = None,
+    out: Annotated[str | None, typer.Option(
+        help="Write to this file instead of stdout (never over a results folder's own files).")]
+    = None,
 ) -> None:
     """Regenerate Table 1 (or the transfer table) from stored results."""
-    from icpbench.report import render, table1, transfer_frame, transfer_vs_baseline
+    from icpbench.report import (
+        check_table_destination,
+        render,
+        table1,
+        transfer_frame,
+        transfer_vs_baseline,
+    )
     from icpbench.results import load_results
 
     try:
         if format not in ("md", "latex", "csv"):
             raise typer.BadParameter(f"--format must be md, latex or csv, got {format!r}")
+        if out is not None:
+            check_table_destination(out)
         df = load_results(results_dir)
+        _check_reference(reference, set(df["attack"]))
         if transfer is not None:
             text = render(transfer_frame(df, transfer), format)
             if format != "csv" and "normal" in set(df["attack"]):
@@ -211,8 +297,8 @@ def table(
         if out is None:
             typer.echo(text)
         else:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            out.write_text(text)
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
+            Path(out).write_text(text)
     except Exception as exc:
         _user_error(exc)
 
@@ -231,8 +317,8 @@ def show_dataset(
         paths = show(name, out, sample_index=sample, **_flat(dataset_param, "--dataset-param"))
         for p in paths:
             typer.echo(str(p))
-    except (IcpbenchError, ValueError) as exc:
-        _fail(exc)
+    except Exception as exc:
+        _user_error(exc)
 
 
 @app.command("map")
@@ -249,9 +335,9 @@ def danger_map(
     = None,
     attack_param: Annotated[list[str] | None, typer.Option(help="NAME.KEY=VALUE.")] = None,
     dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
-    out: Annotated[Path, typer.Option(help="Output directory (re-run to resume).")]
-    = Path("runs/map"),
-    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+    out: Annotated[str, typer.Option(help="Output directory (re-run to resume).")]
+    = "runs/map",
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
     from icpbench.danger_map import write_maps
@@ -259,7 +345,9 @@ def danger_map(
     from icpbench.runner import RunConfig
     from icpbench.runner import run as run_grid
 
+    out_dir: Path | None = None
     try:
+        out = out_dir = _out_dir(out)
         attacks = [attack] + ([compare] if compare else [])
         cfg = RunConfig(dataset=dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
                         samples=samples, split=split,
@@ -278,8 +366,10 @@ def danger_map(
             typer.echo(f"{attack} - {compare}: median {c['median']:.2f} m, IQR [{c['q1']:.2f}, "
                        f"{c['q3']:.2f}] m, {attack} larger at {100 * c['share_ours_larger']:.0f}%")
         typer.echo(f"written to {out}: " + ", ".join(summary["files"]))
-    except (IcpbenchError, ValueError) as exc:
-        _fail(exc)
+    except KeyboardInterrupt:
+        _interrupted(out_dir)
+    except Exception as exc:
+        _user_error(exc)
 
 
 @app.command("object-study")
@@ -295,6 +385,13 @@ def object_study(
     from icpbench.report import render
 
     try:
+        if not budget > 0:
+            raise typer.BadParameter(f"--budget must be > 0, got {budget}")
+        if objects < 1:
+            raise typer.BadParameter(f"--objects must be >= 1, got {objects}")
+        if not 0 <= figure_objects <= objects:
+            raise typer.BadParameter(f"--figure-objects must be between 0 and --objects "
+                                     f"({objects}), got {figure_objects}")
         models = dict(_kv(m, "--model") for m in model)
         rows, clouds, _ = study({k: str(v) for k, v in models.items()}, budget, objects,
                                 figure_objects)
@@ -306,8 +403,8 @@ def object_study(
         figure(rows, clouds, out / "object_study.png")
         typer.echo(render(table.round(4), "md"))
         typer.echo(f"written to {out}")
-    except (IcpbenchError, ValueError) as exc:
-        _fail(exc)
+    except Exception as exc:
+        _user_error(exc)
 
 
 @app.command()
@@ -315,8 +412,8 @@ def train(
     preset: Annotated[str, typer.Option(
         help="quick-lidar, quick-lidar-soft, paper-lidar, quick-objects, paper-objects.")]
     = "quick-lidar",
-    out: Annotated[Path, typer.Option(help="Output directory (re-run to resume).")]
-    = Path("runs/train"),
+    out: Annotated[str, typer.Option(help="Output directory (re-run to resume).")]
+    = "runs/train",
     budgets: Annotated[str | None, typer.Option(help="λ values; several = one conditioned model.")]
     = None,
     weights: Annotated[str | None, typer.Option(help="xy, x-only or theta-only.")] = None,
@@ -357,6 +454,15 @@ def train(
     from icpbench.training import train_config
 
     try:
+        for flag, v, lo in (("--epochs", epochs, 0), ("--pretrain-epochs", pretrain_epochs, 0),
+                            ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 0),
+                            ("--batch-size", batch_size, 1), ("--threads", threads, 1)):
+            if v is not None and v < lo:
+                raise typer.BadParameter(f"{flag} must be >= {lo}, got {v}")
+        for flag, x in (("--lr", lr), ("--max-minutes", max_minutes)):
+            if x is not None and not (x > 0 and math.isfinite(x)):
+                raise typer.BadParameter(f"{flag} must be a positive number, got {x}")
+        out_dir = _out_dir(out)
         over = {k: v for k, v in dict(
             weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
             train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
@@ -370,13 +476,15 @@ def train(
             over["budgets"] = _floats(budgets, "--budgets")
         if dataset_param:
             over["dataset_params"] = _flat(dataset_param, "--dataset-param")
-        card = run_training(train_config(preset, **over), out, progress=not quiet,
+        card = run_training(train_config(preset, **over), out_dir, progress=not quiet,
                             log=None if quiet else typer.echo)
-        typer.echo(f"checkpoint: {out}/generator.pt")
+        typer.echo(f"checkpoint: {out_dir}/generator.pt")
         for lam, r in card.get("heldout_eval", {}).items():
             typer.echo(f"held-out λ={lam}: mean trans_err_xy {r['trans_err_xy_mean']} m "
                        f"({r['converged']}/{r['samples']} converged), mean max displacement "
                        f"{r['disp_max_mean']:.3f}")
+    except KeyboardInterrupt:
+        _interrupted(Path(out))
     except Exception as exc:
         _user_error(exc)
 

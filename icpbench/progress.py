@@ -1,9 +1,16 @@
-"""One progress-bar factory for every loop a person waits for (tqdm; silent off a TTY)."""
+"""Progress for every loop a person waits for.
+
+On a terminal: a tqdm bar (units done, rate, time left). Off a terminal (CI, a log file): one plain
+line per minute, ``icpbench run: 120/1200 units (10%), 0.52 units/s, about 35 min left``, so a log
+shows that a long run is alive without filling up with bar redraws.
+"""
 
 from __future__ import annotations
 
 import sys
-from typing import Any
+import time
+from collections.abc import Callable
+from typing import Any, TextIO
 
 from tqdm.auto import tqdm
 
@@ -11,3 +18,82 @@ from tqdm.auto import tqdm
 def progress_bar(*, disable: bool = False, **kw: Any) -> tqdm:
     """A tqdm bar that is disabled when ``disable`` is set or stderr is not a terminal."""
     return tqdm(disable=disable or not sys.stderr.isatty(), dynamic_ncols=True, **kw)
+
+
+def _duration(seconds: float) -> str:
+    """``42 s``, ``7 min``, ``2.5 h``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+class RunProgress:
+    """Progress of ``total`` units, ``done`` of which were finished before (resumed runs).
+
+    Args:
+        total: units in the whole job.
+        done: units already finished when it starts (counted, but not in the rate).
+        desc: what is running (the start of every line).
+        unit: the unit's name (singular).
+        enabled: False = silent (``--quiet``).
+        stream: where to write (default stderr). A bar when it is a terminal, else log lines.
+        interval_s: seconds between log lines off a terminal.
+        clock: monotonic clock in seconds (tests pass a fake one).
+    """
+
+    def __init__(self, total: int, *, done: int = 0, desc: str = "icpbench", unit: str = "unit",
+                 enabled: bool = True, stream: TextIO | None = None, interval_s: float = 60.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.total, self.done, self.start_done = int(total), int(done), int(done)
+        self.desc, self.unit, self.enabled = desc, unit, enabled
+        self.stream = stream if stream is not None else sys.stderr
+        self.interval_s, self.clock = float(interval_s), clock
+        self.t0 = self.last = clock()
+        tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.bar = (tqdm(total=self.total, initial=self.done, desc=desc, unit=unit,
+                         file=self.stream, dynamic_ncols=True, smoothing=0.1)
+                    if enabled and tty else None)
+        if enabled and self.bar is None:
+            self._line(f"{self.total} {unit}s, {self.done} already done" if self.done
+                       else f"{self.total} {unit}s")
+
+    def _line(self, text: str) -> None:
+        print(f"{self.desc}: {text}", file=self.stream, flush=True)
+
+    def status(self) -> str:
+        """``done/total units (pct), rate, time left`` (rate over the units computed here)."""
+        elapsed = max(self.clock() - self.t0, 1e-9)
+        new = self.done - self.start_done
+        pct = 100.0 * self.done / self.total if self.total else 100.0
+        text = f"{self.done}/{self.total} {self.unit}s ({pct:.0f}%)"
+        if new > 0:
+            rate = new / elapsed
+            left = (self.total - self.done) / rate
+            text += f", {rate:.3g} {self.unit}s/s, about {_duration(left)} left"
+        return text
+
+    def update(self, n: int = 1) -> None:
+        """``n`` more units are done."""
+        self.done += n
+        if self.bar is not None:
+            self.bar.update(n)
+        elif self.enabled and self.clock() - self.last >= self.interval_s:
+            self.last = self.clock()
+            self._line(self.status())
+
+    def write(self, text: str) -> None:
+        """A message (e.g. a warning) that does not break the bar; written even when quiet."""
+        if self.bar is not None:
+            self.bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        """Close the bar, or write the final line (units done and wall time)."""
+        if self.bar is not None:
+            self.bar.close()
+        elif self.enabled:
+            self._line(f"{self.done}/{self.total} {self.unit}s done in "
+                       f"{_duration(self.clock() - self.t0)}")

@@ -5,15 +5,27 @@ entry-point groups ``icpbench.attacks``, ``icpbench.targets`` and ``icpbench.dat
 distribution. Entry points are loaded lazily, so a plugin whose optional library is missing is
 reported as unavailable (with the reason) instead of breaking the rest of the tool.
 Plugins can also be registered at run time with :meth:`Registry.register` (tests, notebooks).
+
+Every plugin is checked when it is first loaded: its class must subclass the base of its kind
+(:class:`~icpbench.attacks.base.Attack`, :class:`~icpbench.targets.base.Target`,
+:class:`~icpbench.datasets.base.Dataset`) and its ``name`` must equal the key it is registered under
+(rows are written under ``cls.name`` and resumed under the key, so a mismatch would break resume).
+User settings of a plugin (``--attack-param NAME.KEY=VALUE`` etc.) are checked against the
+settings the class declares (:func:`check_params`) before anything is built.
 """
 
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
+import types
+import typing
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib.metadata import EntryPoint, entry_points
-from typing import Any
+from pathlib import Path
+from typing import Any, Literal
 
 from icpbench.errors import InputError, PluginUnavailableError
 
@@ -33,9 +45,10 @@ class PluginInfo:
 class Registry:
     """Name -> plugin class lookup for one plugin kind (lazy, entry-point based)."""
 
-    def __init__(self, kind: str, group: str) -> None:
+    def __init__(self, kind: str, group: str, base: str) -> None:
         self.kind = kind
         self.group = group
+        self.base = base  # "module:Class" of the base class every plugin of this kind subclasses
         self._entry_points: dict[str, EntryPoint] = {}
         self._classes: dict[str, type] = {}
         self._errors: dict[str, str] = {}
@@ -59,6 +72,7 @@ class Registry:
             self.discover()
             if name in self._classes and self._classes[name] is not c:
                 raise ValueError(f"{self.kind} {name!r} is already registered")
+            self.check_contract(name, c, f"registered at run time as {name!r}")
             self._classes[name] = c
             return c
 
@@ -94,8 +108,32 @@ class Registry:
             reason = f"{type(exc).__name__}: {exc}"
             self._errors[name] = reason
             raise PluginUnavailableError(f"{self.kind} {name!r} cannot be loaded ({reason})") from exc
+        self.check_contract(name, cls, f"entry point {name!r} = {self._entry_points[name].value}")
         self._classes[name] = cls
         return cls
+
+    def base_class(self) -> type:
+        """The class every plugin of this kind must subclass."""
+        module, _, attr = self.base.partition(":")
+        return getattr(importlib.import_module(module), attr)
+
+    def check_contract(self, name: str, cls: Any, origin: str) -> None:
+        """Raise :class:`InputError` unless ``cls`` subclasses this kind's base class and its
+        ``name`` equals the key ``name`` it is registered under."""
+        base = self.base_class()
+        if not (isinstance(cls, type) and issubclass(cls, base)):
+            what = cls.__name__ if isinstance(cls, type) else type(cls).__name__
+            raise InputError(f"{self.kind} plugin {origin}: {what} is not a subclass of "
+                             f"{base.__module__}.{base.__qualname__}")
+        if getattr(cls, "name", None) != name:
+            raise InputError(f"{self.kind} plugin {origin}: its class {cls.__name__} has name "
+                             f"{getattr(cls, 'name', None)!r}; the name must equal the key {name!r} "
+                             "(rows are stored under the name and resumed under the key)")
+
+    def check_params(self, name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+        """The settings ``params`` of plugin ``name``, checked and coerced (see :func:`check_params`)."""
+        cls = self.get(name)
+        return check_params(f"{self.kind} {name!r}", cls.param_types(), params or {})
 
     def available(self, name: str) -> tuple[bool, str]:
         """(True, "") if ``name`` loads, else (False, reason)."""
@@ -104,6 +142,9 @@ class Registry:
             return True, ""
         except PluginUnavailableError:
             return False, self._errors.get(name, "")
+        except InputError as exc:  # a plugin that breaks the contract (wrong base class or name)
+            self._errors[name] = str(exc)
+            return False, str(exc)
 
     def info(self) -> list[PluginInfo]:
         """Load every plugin and describe it (for ``icpbench list``)."""
@@ -138,6 +179,158 @@ class Registry:
         return items
 
 
-attacks = Registry("attack", "icpbench.attacks")
-targets = Registry("target", "icpbench.targets")
-datasets = Registry("dataset", "icpbench.datasets")
+# -- plugin settings ----------------------------------------------------------------------------
+def keyword_params(func: Callable[..., Any], skip: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The named parameters of ``func`` (``self``, ``*args``, ``**kwargs`` and ``skip`` left out)
+    with their type hints (``Any`` where a hint cannot be resolved)."""
+    sig = inspect.signature(func)
+    try:
+        hints = typing.get_type_hints(func)
+    except Exception:  # a hint naming something only imported for type checking
+        hints = {}
+    return {n: hints.get(n, Any) for n, p in sig.parameters.items()
+            if n not in ("self", *skip)
+            and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+
+
+def accepts_extra(func: Callable[..., Any]) -> bool:
+    """Whether ``func`` takes ``**kwargs``."""
+    return any(p.kind is p.VAR_KEYWORD for p in inspect.signature(func).parameters.values())
+
+
+def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
+    """Check user settings against the settings a plugin declares; return them coerced.
+
+    Args:
+        owner: what the settings belong to, for messages (``"attack 'pgd'"``).
+        types_: setting name -> type hint (from the plugin's ``param_types()``).
+        params: the user's settings; strings that spell a number are turned into numbers where the
+            hint asks for one (``"1e-3"`` for a float), numbers into strings where it asks for text.
+
+    Raises:
+        InputError: an unknown setting (the message lists the valid ones) or a value of the wrong
+            type (``pgd.steps=abc``).
+    """
+    unknown = sorted(set(params) - set(types_))
+    if unknown:
+        raise InputError(f"unknown setting(s) {', '.join(map(repr, unknown))} for {owner}; valid: "
+                         f"{', '.join(sorted(types_)) or '(none)'}")
+    out = {}
+    for k, v in params.items():
+        try:
+            out[k] = coerce(v, types_[k])
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"setting {k!r} of {owner} must be {describe_type(types_[k])}, "
+                             f"got {v!r}") from exc
+    return out
+
+
+_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+def coerce(value: Any, hint: Any) -> Any:
+    """``value`` as the type hint ``hint`` asks (see :func:`check_params`); ValueError if it cannot be.
+    Hints this function does not know (classes, generics) let the value through unchanged."""
+    if hint is Any or hint is inspect.Parameter.empty:
+        return value
+    origin = typing.get_origin(hint)
+    if origin is typing.Union or origin is types.UnionType:
+        args = typing.get_args(hint)
+        if value is None:
+            if type(None) in args:
+                return None
+            raise ValueError("None is not allowed")
+        for a in args:  # an exact match first (``str | list[float]`` keeps a string a string)
+            if a is not type(None) and _is_exactly(value, a):
+                return value
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return coerce(value, a)
+            except (TypeError, ValueError):
+                continue
+        raise ValueError(f"{value!r} fits none of the types")
+    if origin is Literal:
+        if value in typing.get_args(hint):
+            return value
+        raise ValueError(f"not one of {typing.get_args(hint)}")
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.strip().lower() in _TRUE + _FALSE:
+            return value.strip().lower() in _TRUE
+        if isinstance(value, int) and value in (0, 1):
+            return bool(value)
+        raise ValueError("not a boolean")
+    if hint is int:
+        if isinstance(value, bool):
+            raise ValueError("a boolean is not an integer")
+        if isinstance(value, int):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if isinstance(value, str):
+            return int(value.strip())
+        raise ValueError("not an integer")
+    if hint is float:
+        if isinstance(value, bool):
+            raise ValueError("a boolean is not a number")
+        if isinstance(value, int | float):
+            return float(value)
+        if isinstance(value, str):
+            return float(value.strip())
+        raise ValueError("not a number")
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return str(value)
+        raise ValueError("not text")
+    if hint is Path:
+        if isinstance(value, str | Path) and str(value):
+            return value
+        raise ValueError("not a path")
+    if origin in (list, tuple) or getattr(origin, "__name__", "") == "Sequence":
+        if isinstance(value, list | tuple):
+            return value
+        raise ValueError("not a list")
+    if origin is dict:
+        if isinstance(value, dict):
+            return value
+        raise ValueError("not a mapping")
+    return value
+
+
+def _is_exactly(value: Any, hint: Any) -> bool:
+    if hint in (int, float):
+        return isinstance(value, hint) and not isinstance(value, bool)
+    if hint in (bool, str, Path, dict, list, tuple):
+        return isinstance(value, hint)
+    origin = typing.get_origin(hint)
+    if origin is Literal:
+        return value in typing.get_args(hint)
+    if origin in (list, tuple, dict):
+        return isinstance(value, origin)
+    return isinstance(hint, type) and isinstance(value, hint)
+
+
+def describe_type(hint: Any) -> str:
+    """A type hint in words, for messages (``int | None`` -> ``an integer or None``)."""
+    names = {int: "an integer", float: "a number", bool: "true or false", str: "text",
+             Path: "a path", type(None): "None"}
+    if hint in names:
+        return names[hint]
+    origin = typing.get_origin(hint)
+    if origin is typing.Union or origin is types.UnionType:
+        return " or ".join(describe_type(a) for a in typing.get_args(hint))
+    if origin is Literal:
+        return "one of " + ", ".join(map(repr, typing.get_args(hint)))
+    if origin in (list, tuple) or getattr(origin, "__name__", "") == "Sequence":
+        return "a list"
+    return getattr(hint, "__name__", str(hint))
+
+
+attacks = Registry("attack", "icpbench.attacks", "icpbench.attacks.base:Attack")
+targets = Registry("target", "icpbench.targets", "icpbench.targets.base:Target")
+datasets = Registry("dataset", "icpbench.datasets", "icpbench.datasets.base:Dataset")

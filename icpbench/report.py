@@ -10,6 +10,7 @@ larger". Non-converged and failed rows are excluded and counted.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -206,6 +207,59 @@ def displacement_notes(df: pd.DataFrame) -> list[str]:
     return out
 
 
+def load_notes(df: pd.DataFrame) -> list[str]:
+    """Footer: rows :func:`~icpbench.results.load_results` left out (half-written lines, and the
+    earlier rows of keys stored twice)."""
+    out = []
+    if df.attrs.get("incomplete_rows"):
+        out.append(f"warning: {df.attrs['incomplete_rows']} incomplete (half-written) row(s) "
+                   "ignored; re-run the same `icpbench run` command to compute them again")
+    if df.attrs.get("duplicate_rows"):
+        out.append(f"warning: {df.attrs['duplicate_rows']} row(s) stored twice under the same key; "
+                   "the last of each was used")
+    return out
+
+
+#: First-line prefixes of the tables :func:`render` writes (Table 1 and the transfer table).
+TABLE_HEADS = ("| Method", "| Attack", "\\begin{tabular}", "Method,", "Attack,")
+
+
+def is_table_text(text: str) -> bool:
+    """Whether ``text`` is a table written by ``icpbench table`` (by its first line)."""
+    first = text.lstrip().split("\n", 1)[0]
+    return first.startswith(TABLE_HEADS)
+
+
+def check_table_destination(path: str | Path) -> None:
+    """Refuse to write a table over a file of a results folder that is not a table of ours.
+
+    Raises:
+        InputError: ``path`` is a results folder's own file (``results.csv``, ``manifest.json``,
+            its lock), or an existing file in a results folder that is not a table written by
+            ``icpbench table``.
+    """
+    from icpbench.results import STORE_FILES, is_results_dir
+
+    p = Path(path)
+    if str(path) == "":
+        raise InputError("--out is empty ('')")
+    if p.is_dir():
+        raise InputError(f"--out {p} is a folder; give a file name, e.g. {p / 'table1.md'}")
+    if not is_results_dir(p.parent):
+        return
+    if p.name in STORE_FILES:
+        raise InputError(f"refusing to write a table over {p}: it is a file of the results folder "
+                         f"{p.parent} (written by `icpbench run`); choose another --out")
+    if p.exists():
+        try:
+            ours = is_table_text(p.read_text(errors="strict"))
+        except (OSError, UnicodeDecodeError):
+            ours = False
+        if not ours:
+            raise InputError(f"refusing to overwrite {p}: it is in the results folder {p.parent} "
+                             "and is not a table written by `icpbench table`; choose another --out")
+
+
 def render(frame: pd.DataFrame, fmt: Format = "md") -> str:
     """Render a table frame as Markdown (GitHub), LaTeX (booktabs) or CSV."""
     if fmt == "md":
@@ -229,6 +283,7 @@ def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
     notes = ["n converged / dropped / pairs per cell: " + "; ".join(
         f"{DISPLAY.get(r.attack, r.attack)} λ={r.budget:g}: {r.n}/{r.dropped}/{r.pairs}"
         for r in counts.itertuples())]
+    notes += load_notes(df)
     notes += all_pairs_notes(sub, reference)
     notes += displacement_notes(sub)
     notes += timing_notes(sub, reference)

@@ -4,25 +4,39 @@ and a ``manifest.json`` beside it.
 Crash safety: every unit of work is appended as one ``write`` of complete lines followed by
 ``fsync``. A process killed mid-write can leave at most one partial trailing line; it is detected
 (no final newline) and cut off when the store is reopened, so a resumed run neither loses finished
-rows nor duplicates them.
+rows nor duplicates them. A run holds an exclusive lock on its folder (:func:`lock_results_dir`), so
+two runs never append to the same file. Reading is robust anyway: a row that is incomplete (a
+half-written line, no ``status``) is ignored, and of several rows with the same key the last one
+counts (a re-run replaces the rows of a sample whose input file was bad, see :data:`BAD_INPUT`).
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
 import io
 import json
 import os
-from collections.abc import Iterable, Mapping, Sequence
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from icpbench.errors import InputError
 
 RESULTS_FILE = "results.csv"
 MANIFEST_FILE = "manifest.json"
+#: Lock file of a results folder (held by the run writing to it).
+LOCK_FILE = ".icpbench.lock"
+#: Files of a results folder that only ``icpbench run`` writes.
+STORE_FILES = (RESULTS_FILE, MANIFEST_FILE, LOCK_FILE)
+#: Prefix of the ``error`` of rows of a sample whose input (file) is bad. Such rows are not final:
+#: a re-run tries the sample again (e.g. after the file was fixed) and its new rows replace them.
+BAD_INPUT = "bad input: "
 KEY_COLUMNS = ("sample_id", "attack", "target", "budget", "seed")
 
 #: Columns every row has, in order. ``meta`` and ``extra`` hold JSON dicts (dataset metadata such as
@@ -37,6 +51,8 @@ COLUMNS = (
 )
 #: Columns that vary from run to run on the same machine (excluded from determinism checks).
 TIMING_COLUMNS = ("attack_time_s", "icp_time_s")
+#: Pose-error columns: a row with a non-finite one is never counted as converged.
+ERROR_COLUMNS = ("trans_err_xy", "trans_err", "rot_err")
 
 
 def row_key(row: Mapping[str, Any]) -> tuple:
@@ -45,15 +61,66 @@ def row_key(row: Mapping[str, Any]) -> tuple:
             float(row["budget"]), int(row["seed"]))
 
 
+def is_results_dir(path: str | Path) -> bool:
+    """Whether ``path`` is a folder written by ``icpbench run`` (it holds a results CSV or a manifest)."""
+    p = Path(path)
+    return p.is_dir() and any((p / f).exists() for f in (RESULTS_FILE, MANIFEST_FILE))
+
+
+@contextmanager
+def lock_results_dir(out_dir: str | Path) -> Iterator[None]:
+    """Hold an exclusive lock on a results folder (``fcntl.flock`` on :data:`LOCK_FILE`).
+
+    Raises:
+        InputError: another process holds it (the message names it, as far as it is known).
+    """
+    path = Path(out_dir) / LOCK_FILE
+    f = open(path, "a+")  # noqa: SIM115 - held open for the life of the lock
+    try:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise InputError(f"{out_dir} is in use by another icpbench run ({holder}); wait for it "
+                             "to finish, or use another --out") from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()}, since {time.strftime('%Y-%m-%dT%H:%M:%S%z')}\n")
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    finally:
+        f.close()
+
+
+def _complete(row: Mapping[str, Any]) -> bool:
+    """A row with every column present and a status (not a half-written line)."""
+    return all(row.get(c) is not None for c in COLUMNS) and bool(row.get("status"))
+
+
+def _final(row: Mapping[str, Any]) -> bool:
+    """A complete row that a re-run must not recompute (not the row of a bad input file)."""
+    return _complete(row) and not str(row.get("error") or "").startswith(BAD_INPUT)
+
+
 class ResultsStore:
-    """Append-only CSV of result rows in ``out_dir``, resumable after a crash."""
+    """Append-only CSV of result rows in ``out_dir``, resumable after a crash.
+
+    :meth:`has` is true only for keys with a *final* row: an incomplete row or the error row of a
+    sample whose input was bad is computed again, and its new row (appended later) is the one
+    :func:`load_results` keeps."""
 
     def __init__(self, out_dir: str | Path) -> None:
         self.dir = Path(out_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.path = self.dir / RESULTS_FILE
         self._repair()
-        self._keys = {row_key(r) for r in self._read_rows()}
+        rows = self._read_rows()
+        self._keys = {row_key(r) for r in rows if _complete(r)}
+        self._final = {row_key(r) for r in rows if _final(r)}
 
     def _repair(self) -> None:
         """Cut a partial trailing line left by a killed writer."""
@@ -78,18 +145,18 @@ class ResultsStore:
                     f"{self.path} was written by another version of icpbench (columns differ); "
                     "use a new --out directory"
                 )
-            return list(reader)
+            return [r for r in reader if r.get("sample_id")]
 
     def has(self, key: tuple) -> bool:
-        """Whether a row with this key is already stored."""
-        return key in self._keys
+        """Whether a final row with this key is already stored."""
+        return key in self._final
 
     def __len__(self) -> int:
         return len(self._keys)
 
     def append(self, rows: Sequence[Mapping[str, Any]]) -> None:
-        """Append complete rows in one write + fsync (rows already stored are skipped)."""
-        rows = [r for r in rows if row_key(r) not in self._keys]
+        """Append complete rows in one write + fsync (rows whose key is final are skipped)."""
+        rows = [r for r in rows if row_key(r) not in self._final]
         if not rows:
             return
         buf = io.StringIO()
@@ -104,6 +171,7 @@ class ResultsStore:
             f.flush()
             os.fsync(f.fileno())
         self._keys.update(row_key(r) for r in rows)
+        self._final.update(row_key(r) for r in rows if _final({c: _cell(r.get(c, "")) for c in COLUMNS}))
 
 
 def _cell(v: Any) -> Any:
@@ -125,8 +193,11 @@ def _json_default(v: Any) -> Any:
 def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     """Load a results directory (or CSV file) as a DataFrame.
 
-    With ``expand``, the JSON ``meta`` and ``extra`` columns are expanded into ``meta.<key>`` and
-    ``extra.<key>`` columns.
+    Incomplete rows (a half-written line: no ``status``) are dropped, and of several rows with the
+    same key (sample, attack, target, budget, seed) only the last is kept; their numbers are in
+    ``df.attrs["incomplete_rows"]`` and ``df.attrs["duplicate_rows"]``. A row whose pose error is
+    not finite never counts as converged. With ``expand``, the JSON ``meta`` and ``extra`` columns
+    are expanded into ``meta.<key>`` and ``extra.<key>`` columns.
     """
     p = Path(path)
     if p.is_dir():
@@ -140,18 +211,34 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
                          f"({type(exc).__name__}: {str(exc).strip().splitlines()[0]})") from exc
     if df.empty:
         raise InputError(f"{p} holds no result rows")
-    missing = [c for c in KEY_COLUMNS + ("converged", "strict", "meta", "extra") if c not in df]
+    missing = [c for c in KEY_COLUMNS + ("status", "converged", "strict", "meta", "extra")
+               if c not in df]
     if missing:
         raise InputError(f"{p} is not a results CSV written by `icpbench run` (no column "
                          f"{missing[0]!r})")
+    # every complete row has a status, a converged flag and a JSON meta ("{}" at least)
+    incomplete = df[[*KEY_COLUMNS, "status", "converged", "meta"]].isna().any(axis=1)
+    n_incomplete = int(incomplete.sum())
+    df = df[~incomplete].copy()
+    if df.empty:
+        raise InputError(f"{p} holds no complete result rows ({n_incomplete} incomplete)")
+    df["seed"] = df["seed"].astype(int)
+    df["budget"] = df["budget"].astype(float)
+    n_before = len(df)
+    df = df.drop_duplicates(list(KEY_COLUMNS), keep="last").reset_index(drop=True)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
     df["strict"] = df["strict"].astype(str).str.lower().isin(["true", "1"])
+    for c in ERROR_COLUMNS:
+        if c in df:
+            df["converged"] &= np.isfinite(pd.to_numeric(df[c], errors="coerce").astype(float))
     if expand:
         for col in ("meta", "extra"):
             parsed = [json.loads(s) if isinstance(s, str) and s else {} for s in df[col]]
             keys = sorted({k for d in parsed for k in d})
             for k in keys:
                 df[f"{col}.{k}"] = [d.get(k) for d in parsed]
+    df.attrs["incomplete_rows"] = n_incomplete
+    df.attrs["duplicate_rows"] = n_before - len(df)
     return df
 
 
@@ -176,11 +263,3 @@ def read_manifest(out_dir: str | Path) -> dict[str, Any] | None:
         return json.loads(p.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"{p} is not valid JSON ({exc}); delete it or use a new --out") from exc
-
-
-def rows_equal_ignoring_timing(a: Iterable[Mapping[str, Any]], b: Iterable[Mapping[str, Any]]) -> bool:
-    """Compare result rows, ignoring wall-time columns (for determinism checks)."""
-    def strip(rows):
-        return sorted(tuple((k, str(v)) for k, v in sorted(r.items()) if k not in TIMING_COLUMNS)
-                      for r in rows)
-    return strip(a) == strip(b)

@@ -5,7 +5,10 @@ evaluated targets can be anything, including black boxes: this is how transfer i
 unit of work (one seed, one batch of samples, one budget, one attack) is attacked once and then
 registered by every target; its rows are appended to the results store as soon as it finishes, so
 an interrupted run resumes where it stopped. A plugin that raises inside a unit produces rows with
-``status = "error"`` and the message, and the run goes on.
+``status = "error"`` and the message, and the run goes on; so does a sample whose input file is bad
+(one warning, ``error`` rows, retried on the next run; ``strict_files`` stops instead). Every sample
+gets its own random stream from (seed, attack, budget, sample id), so rows do not depend on the
+batch size or the executor. The results folder is locked while a run writes to it.
 
 Where units are computed is the executor's business (:mod:`icpbench.executors`: ``local`` in this
 process, ``ray`` on a Ray cluster); every executor yields the rows in grid order and only this
@@ -14,13 +17,13 @@ process writes them, so the results file is the same whatever the executor.
 
 from __future__ import annotations
 
+import copy
 import math
 import platform
 import subprocess
 import time
-import zlib
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
 from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -31,14 +34,17 @@ import torch
 
 from icpbench import registry
 from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput, validate_budget
+from icpbench.datasets.base import Dataset
 from icpbench.errors import InputError
 from icpbench.executors import WorkItem, check_executor, get_executor
-from icpbench.progress import progress_bar
+from icpbench.progress import RunProgress
 from icpbench.results import (
+    BAD_INPUT,
     MANIFEST_FILE,
+    RESULTS_FILE,
     ResultsStore,
+    lock_results_dir,
     read_manifest,
-    row_key,
     write_json_atomic,
 )
 from icpbench.se3 import POSE_ERROR_COLUMNS, pose_error_components
@@ -48,32 +54,40 @@ from icpbench.types import Batch, Sample
 
 @dataclass
 class RunConfig:
-    """Everything that determines a run's results (written to the manifest).
+    """Everything that determines a run's results (written to the manifest), and the one source of
+    the defaults of ``icpbench run``.
 
     Attributes:
         dataset: registered dataset name.
-        dataset_params: constructor kwargs of the dataset (besides seed/split).
+        dataset_params: constructor settings of the dataset (besides seed/split).
         split: dataset split to evaluate ("test" by default).
         dataset_seed: seed of the dataset itself.
-        attacks, targets: registered names.
-        budgets: perturbation budgets lambda (metres; normalised units for ``objects``).
+        attacks: registered attack names; ``["all"]`` = every attack that loads.
+        targets: registered target names.
+        budgets: perturbation budgets lambda (metres; normalised units for ``objects``); None =
+            the dataset's ``default_budgets``.
         samples: number of samples (the first K of the split; None = all).
         seeds: attack seeds; each adds one row per (sample, attack, target, budget).
         surrogate: differentiable target that gradient-based attacks use.
         icp_preset: ICP settings preset for every target (default: the dataset's).
-        batch_size: samples per batch.
+        batch_size: samples per batch (results do not depend on it).
         strict: project every attack's per-point displacement onto its budget ball.
         threads: torch intra-op threads (1 is fastest for these tensor sizes on small CPUs).
-        attack_params, target_params: per-plugin constructor kwargs.
+        attack_params, target_params: per-plugin settings, ``{name: {key: value}}``.
         executor: where units of work run (``local`` or ``ray``); results do not depend on it, so
             a run may be resumed with another executor.
+        strict_files: stop the run at the first sample whose input file is bad, instead of
+            skipping it with a warning and ``error`` rows.
+
+    :meth:`validate` resolves ``all`` and the default budgets and checks every setting, so the
+    manifest records exactly what ran; :meth:`from_file` reads such a record back.
     """
 
-    dataset: str = "objects"
-    attacks: list[str] = field(default_factory=lambda: ["none", "uniform", "normal"])
+    dataset: str = "lidar-sim"
+    attacks: list[str] = field(default_factory=lambda: ["all"])
     targets: list[str] = field(default_factory=lambda: ["p2plane"])
-    budgets: list[float] = field(default_factory=lambda: [1.0])
-    samples: int | None = 20
+    budgets: list[float] | None = None
+    samples: int | None = None
     seeds: list[int] = field(default_factory=lambda: [0])
     surrogate: str = "p2plane"
     split: str = "test"
@@ -86,38 +100,109 @@ class RunConfig:
     attack_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     target_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     executor: str = "local"
+    strict_files: bool = False
 
     def validate(self) -> RunConfig:
-        """Check names, budgets and sizes; raise InputError listing valid choices."""
-        registry.datasets.get(self.dataset)
+        """Check names, budgets, sizes and every plugin setting; resolve ``all`` and the default
+        budgets. Raises InputError naming the setting and listing valid choices."""
+        ds_cls = registry.datasets.get(self.dataset)
         self.attacks = registry.attacks.resolve(self.attacks)
         self.targets = registry.targets.resolve(self.targets)
-        if self.surrogate not in registry.targets.names():
-            registry.targets.get(self.surrogate)
+        sur_cls = registry.targets.get(self.surrogate)
+        needs = [a for a in self.attacks if registry.attacks.get(a).needs_surrogate]
+        if needs and not sur_cls.differentiable:
+            raise InputError(f"attack(s) {', '.join(needs)} need a differentiable surrogate; "
+                             f"{self.surrogate!r} is a black box (use --surrogate p2plane or p2point)")
+        if self.budgets is None:
+            self.budgets = list(ds_cls.default_budgets)
+        if not self.budgets:
+            raise InputError("no budgets given")
         self.budgets = [validate_budget(b) for b in self.budgets]
+        for key in ("samples", "batch_size", "threads", "dataset_seed"):
+            v = getattr(self, key)
+            if v is None and key == "samples":
+                continue
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise InputError(f"{key} must be an integer, got {v!r}")
         if self.samples is not None and self.samples < 1:
             raise InputError(f"--samples must be >= 1, got {self.samples}")
         if self.batch_size < 1:
             raise InputError(f"batch size must be >= 1, got {self.batch_size}")
-        if not self.seeds:
-            raise InputError("at least one seed is needed")
+        if self.threads < 1:
+            raise InputError(f"--threads must be >= 1, got {self.threads}")
+        if not self.seeds or not all(isinstance(s, int) and not isinstance(s, bool)
+                                     for s in self.seeds):
+            raise InputError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+        self._check_params()
         check_executor(self.executor)
         return self
+
+    def _check_params(self) -> None:
+        """Plugin settings: only for plugins in the run, only keys they declare, typed values."""
+        for what, given, allowed in (("attack", self.attack_params, self.attacks),
+                                     ("target", self.target_params,
+                                      [*self.targets, self.surrogate])):
+            stray = sorted(set(given) - set(allowed))
+            if stray:
+                raise InputError(f"settings given for {what}(s) {', '.join(map(repr, stray))} that "
+                                 f"are not in this run ({', '.join(dict.fromkeys(allowed))})")
+        self.attack_params = {n: registry.attacks.check_params(n, p)
+                              for n, p in self.attack_params.items()}
+        self.target_params = {n: registry.targets.check_params(n, p)
+                              for n, p in self.target_params.items()}
+        self.dataset_params = registry.datasets.check_params(self.dataset, self.dataset_params)
+
+    @classmethod
+    def field_names(cls) -> list[str]:
+        """The configuration keys (what a config file may set)."""
+        return [f.name for f in fields(cls)]
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], source: str = "configuration") -> RunConfig:
+        """A config from a mapping of its fields (unknown keys are refused, listing the valid ones)."""
+        if not isinstance(data, Mapping):
+            raise InputError(f"{source} must be a mapping of settings, got {type(data).__name__}")
+        unknown = sorted(set(data) - set(cls.field_names()))
+        if unknown:
+            raise InputError(f"{source}: unknown setting(s) {', '.join(map(repr, unknown))}; valid: "
+                             f"{', '.join(cls.field_names())}")
+        return cls(**{k: copy.deepcopy(v) for k, v in data.items()})
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> RunConfig:
+        """Read a run configuration: a YAML file of :class:`RunConfig` fields, or the
+        ``manifest.json`` of a previous run (its ``config``: re-running it repeats that run)."""
+        import yaml
+
+        p = Path(path)
+        if not p.is_file():
+            raise InputError(f"config file {p} does not exist")
+        try:
+            data = yaml.safe_load(p.read_text())  # JSON is YAML
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise InputError(f"config file {p} is not valid YAML or JSON ({exc})") from exc
+        if isinstance(data, Mapping) and "config" in data and "versions" in data:  # a manifest
+            data = data["config"]
+        return cls.from_mapping(data or {}, str(p))
 
 
 #: RunConfig fields that choose how a run is executed, not what it computes (ignored when a resumed
 #: run's configuration is compared with the stored one).
-EXECUTION_FIELDS = ("executor",)
+EXECUTION_FIELDS = ("executor", "strict_files")
 
 
-def _same_config(a: dict[str, Any], b: dict[str, Any]) -> bool:
-    def strip(c: dict[str, Any]) -> dict[str, Any]:
-        return {k: v for k, v in c.items() if k not in EXECUTION_FIELDS}
-    return strip(a) == strip(b)
-
-
-def _stable_seed(*parts: Any) -> int:
-    return zlib.crc32("|".join(str(p) for p in parts).encode())
+def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """The settings (``key: stored X, now Y``) in which two recorded configurations differ,
+    execution fields aside; a key an older manifest lacks counts as its current default."""
+    defaults = asdict(RunConfig())
+    out = []
+    for k in sorted(set(old) | set(new)):
+        if k in EXECUTION_FIELDS:
+            continue
+        a, b = old.get(k, defaults.get(k)), new.get(k, defaults.get(k))
+        if a != b:
+            out.append(f"{k}: stored {a!r}, now {b!r}")
+    return out
 
 
 def package_versions() -> dict[str, str]:
@@ -156,28 +241,39 @@ def git_commit() -> dict[str, Any]:
 
 
 def build_target(name: str, preset: str, params: dict[str, Any] | None = None) -> Target:
-    """Instantiate a registered target with an ICP preset and overrides."""
+    """Instantiate a registered target by its constructor contract ``cls(preset, **settings)``
+    (settings checked against the target's ``param_types``)."""
     cls = registry.targets.get(name)
-    return cls(preset, **(params or {}))
+    return cls(preset, **registry.targets.check_params(name, params))
 
 
 def build_attack(name: str, strict: bool, params: dict[str, Any] | None = None) -> Attack:
-    """Instantiate a registered attack."""
+    """Instantiate a registered attack as ``cls(strict=..., **settings)`` (settings checked)."""
     cls = registry.attacks.get(name)
-    return cls(strict=strict, **(params or {}))
+    return cls(strict=strict, **registry.attacks.check_params(name, params))
 
 
-def load_dataset(cfg: RunConfig):
-    """Instantiate the configured dataset."""
+def load_dataset(cfg: RunConfig) -> Dataset:
+    """Instantiate the configured dataset as ``cls(seed=..., split=..., **settings)``."""
     cls = registry.datasets.get(cfg.dataset)
-    return cls(seed=cfg.dataset_seed, split=cfg.split, **cfg.dataset_params)
+    return cls(seed=cfg.dataset_seed, split=cfg.split,
+               **registry.datasets.check_params(cfg.dataset, cfg.dataset_params))
 
 
-def _rows_for_unit(samples: Sequence[Sample], attack: str, target: str, budget: float, seed: int,
-                   cfg: RunConfig) -> list[dict[str, Any]]:
-    return [{"sample_id": s.id, "attack": attack, "target": target, "budget": budget,
-             "seed": seed, "surrogate": cfg.surrogate, "strict": cfg.strict,
-             "meta": dict(s.meta)} for s in samples]
+def sample_id(dataset: Dataset, i: int) -> str:
+    """The id of sample ``i``; a sample whose id cannot be read (its file is bad) is named by its
+    index, ``"<dataset>/#<i>"``, in the driver and in every worker alike."""
+    try:
+        return dataset.sample_id(i)
+    except InputError:
+        return f"{dataset.name}/#{i}"
+
+
+def _base_rows(ids: Sequence[str], metas: Sequence[Mapping[str, Any]], attack: str, target: str,
+               budget: float, seed: int, cfg: RunConfig) -> list[dict[str, Any]]:
+    return [{"sample_id": sid, "attack": attack, "target": target, "budget": budget,
+             "seed": seed, "surrogate": cfg.surrogate, "strict": cfg.strict, "meta": dict(meta)}
+            for sid, meta in zip(ids, metas, strict=True)]
 
 
 class GridWorker:
@@ -207,25 +303,55 @@ class GridWorker:
         """A picklable callable that builds an equivalent worker (in another process or node)."""
         return partial(GridWorker, self.cfg)
 
+    def _load(self, item: WorkItem) -> tuple[list[Sample], dict[str, str]]:
+        """The batch's samples, and ``{sample id: message}`` of those whose input is bad (skipped;
+        with ``strict_files`` the error is raised instead)."""
+        good, bad = [], {}
+        for i in range(item.start, item.stop):
+            try:
+                good.append(self.dataset[i].validate())
+            except InputError as exc:
+                if self.cfg.strict_files:
+                    raise
+                bad[sample_id(self.dataset, i)] = str(exc)
+        return good, bad
+
     def run(self, item: WorkItem) -> Iterator[list[dict[str, Any]]]:
         """Attack and register one batch for each of ``item.units``; yield each unit's rows."""
-        batch = Batch.from_samples([self.dataset[i].validate() for i in range(item.start, item.stop)])
-        none_cache: dict[str, tuple] = {}
+        good, bad = self._load(item)
+        batch = Batch.from_samples(good) if good else None
+        invariant_cache: dict[tuple[str, str], tuple] = {}
         for budget, aname in item.units:
-            yield _run_unit(batch, self.attacks[aname], self.targets, self.surrogate, self.prepared,
-                            budget, item.seed, self.cfg, none_cache)
+            rows = [] if batch is None else _run_unit(
+                batch, self.attacks[aname], self.targets, self.surrogate, self.prepared, budget,
+                item.seed, self.cfg, invariant_cache)
+            for tname in self.targets:
+                for r in _base_rows(list(bad), [{}] * len(bad), aname, tname, budget, item.seed,
+                                    self.cfg):
+                    r.update(status="error", converged=False, error=BAD_INPUT + bad[r["sample_id"]])
+                    rows.append(r)
+            yield rows
+
 
 
 def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         on_unit: Callable[[int], None] | None = None) -> ResultsStore:
     """Run (or resume) the grid of ``cfg`` into ``out_dir``; return the results store.
 
+    While it runs, ``out_dir`` is locked: a second run with the same ``out_dir`` is refused.
+    A sample whose input file is bad is skipped with one warning (logger ``icpbench``) and
+    ``error`` rows, unless ``cfg.strict_files``.
+
     Raises:
-        InputError: invalid configuration, or ``out_dir`` holds a run with another configuration.
+        InputError: invalid configuration; ``out_dir`` holds a run with another configuration,
+            results without a manifest, or is in use by another run.
     """
     cfg.validate()
     torch.set_num_threads(cfg.threads)
     out_dir = Path(out_dir)
+    if str(out_dir) == "":
+        raise InputError("the results folder is empty ('')")
+    _check_out_dir(out_dir)
     worker = GridWorker(cfg)
     dataset, preset = worker.dataset, worker.preset
     manifest = {
@@ -239,57 +365,91 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                      "processor": platform.processor(), "cpu_count": _cpu_count()},
     }
     manifest["fingerprints"] = {n: a.fingerprint(cfg.budgets) for n, a in worker.attacks.items()}
-    old = read_manifest(out_dir)
-    if old is not None and not _same_config(old.get("config", {}), manifest["config"]):
-        raise InputError(
-            f"{out_dir} holds results of a different configuration; use a new --out "
-            "(or the same command to resume)"
-        )
-    if old is not None and "fingerprints" in old:  # older manifests lack them: not checked
-        changed = [n for n, fp in manifest["fingerprints"].items()
-                   if fp and old["fingerprints"].get(n) != fp]
-        if changed:
-            raise InputError(
-                f"{out_dir} holds results made with other files for attack(s) "
-                f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
     out_dir.mkdir(parents=True, exist_ok=True)
-    store = ResultsStore(out_dir)
-    manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
-    manifest["surrogate_settings"] = worker.surrogate.settings()
-    manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
-    manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-    write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+    with lock_results_dir(out_dir):
+        _check_out_dir(out_dir)  # again, now that no other run can be writing
+        old = read_manifest(out_dir)
+        if old is not None:
+            diff = config_differences(old.get("config", {}), manifest["config"])
+            if diff:
+                raise InputError(
+                    f"{out_dir} holds results of a different configuration ({'; '.join(diff)}); "
+                    "use a new --out (or the same command to resume)")
+        if old is not None and "fingerprints" in old:  # older manifests lack them: not checked
+            changed = [n for n, fp in manifest["fingerprints"].items()
+                       if fp and old["fingerprints"].get(n) != fp]
+            if changed:
+                raise InputError(
+                    f"{out_dir} holds results made with other files for attack(s) "
+                    f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
+        store = ResultsStore(out_dir)
+        manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
+        manifest["surrogate_settings"] = worker.surrogate.settings()
+        manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
+        manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+        try:
+            _run_items(cfg, worker, store, manifest, progress=progress, on_unit=on_unit)
+        finally:
+            manifest["completed_rows"] = len(store)
+            write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+    return store
 
+
+def _check_out_dir(out_dir: Path) -> None:
+    """Refuse a results folder that holds rows but no manifest (nothing says what made them)."""
+    if (out_dir / RESULTS_FILE).is_file() and (out_dir / RESULTS_FILE).stat().st_size > 0 and \
+            not (out_dir / MANIFEST_FILE).is_file():
+        raise InputError(f"{out_dir} holds a {RESULTS_FILE} but no {MANIFEST_FILE}, so what made "
+                         "those rows is unknown and they cannot be resumed; use a new --out")
+
+
+def _run_items(cfg: RunConfig, worker: GridWorker, store: ResultsStore, manifest: dict[str, Any],
+               *, progress: bool, on_unit: Callable[[int], None] | None) -> None:
+    """Compute the units the store lacks, append their rows, warn once per skipped sample."""
+    dataset = worker.dataset
     n = len(dataset) if cfg.samples is None else min(cfg.samples, len(dataset))
     if n == 0:
         raise InputError(f"dataset {cfg.dataset!r} split {cfg.split!r} has no samples")
     starts = list(range(0, n, cfg.batch_size))
     total = len(cfg.seeds) * len(starts) * len(cfg.budgets) * len(cfg.attacks)
-    bar = progress_bar(total=total, desc="icpbench run", unit="cell", disable=not progress)
     items: list[WorkItem] = []
     for seed in cfg.seeds:
         for start in starts:
-            ids = _ids(dataset, start, n, cfg.batch_size)
+            ids = [sample_id(dataset, i) for i in range(start, min(start + cfg.batch_size, n))]
             units = tuple((budget, aname) for budget in cfg.budgets for aname in worker.attacks
                           if not all(store.has((sid, aname, t, float(budget), int(seed)))
                                      for sid in ids for t in worker.targets))
             if units:
                 items.append(WorkItem(seed=seed, start=start,
                                       stop=min(start + cfg.batch_size, n), units=units))
-    bar.update(total - sum(len(it.units) for it in items))  # units already in the store
+    todo = sum(len(it.units) for it in items)
+    bar = RunProgress(total=total, done=total - todo, desc="icpbench run", unit="unit",
+                      enabled=progress)
     executor = get_executor(cfg.executor, threads=cfg.threads)
+    skipped: dict[str, str] = {}
     done_units = 0
-    for _item, _k, rows in executor.map(worker, items):
-        store.append(rows)
-        bar.update(1)
-        done_units += 1
-        if on_unit is not None:
-            on_unit(done_units)
-    bar.close()
+    try:
+        for _item, _k, rows in executor.map(worker, items):
+            store.append(rows)
+            for r in rows:
+                err = str(r.get("error") or "")
+                if err.startswith(BAD_INPUT) and r["sample_id"] not in skipped:
+                    skipped[r["sample_id"]] = err[len(BAD_INPUT):]
+                    bar.write(f"warning: skipped sample {r['sample_id']}: {skipped[r['sample_id']]}")
+            bar.update(1)
+            done_units += 1
+            if on_unit is not None:
+                on_unit(done_units)
+    finally:
+        bar.close()
     manifest["completed_rows"] = len(store)
+    manifest["skipped_samples"] = skipped
     manifest["execution"] = executor.describe()
-    write_json_atomic(out_dir / MANIFEST_FILE, manifest)
-    return store
+    if skipped and len(skipped) == n:
+        first = next(iter(skipped.items()))
+        raise InputError(f"no sample of dataset {cfg.dataset!r} could be read ({len(skipped)} "
+                         f"skipped); the first, {first[0]}: {first[1]}")
 
 
 def _cpu_count() -> int:
@@ -298,51 +458,45 @@ def _cpu_count() -> int:
     return os.cpu_count() or 0
 
 
-def _ids(dataset, start: int, n: int, batch_size: int) -> list[str]:
-    """Sample ids of one batch (datasets may expose a cheap ``sample_id(i)``)."""
-    get_id = getattr(dataset, "sample_id", None)
-    idx = range(start, min(start + batch_size, n))
-    if get_id is not None:
-        return [get_id(i) for i in idx]
-    return [dataset[i].id for i in idx]
-
-
-def _attack_context(name: str, cfg: RunConfig, dataset) -> dict[str, Any]:
-    """Extra constructor kwargs an attack declares it wants (``wants_context``): dataset name and
-    ICP preset, e.g. so the generator picks the shipped checkpoint of the dataset."""
-    cls = registry.attacks.get(name)
-    if getattr(cls, "wants_context", False):
+def _attack_context(name: str, cfg: RunConfig, dataset: Dataset) -> dict[str, Any]:
+    """Extra constructor kwargs an attack declares it wants (``Attack.wants_context``): dataset
+    name and ICP preset, e.g. so the generator picks the shipped checkpoint of the dataset."""
+    if registry.attacks.get(name).wants_context:
         return {"dataset": cfg.dataset, "icp_preset": cfg.icp_preset or dataset.icp_preset}
     return {}
 
 
 def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogate: Target,
               prepared: dict[str, dict[str, Any]], budget: float, seed: int, cfg: RunConfig,
-              none_cache: dict[str, tuple]) -> list[dict[str, Any]]:
-    """Attack one batch once and register it with every target; return the rows."""
+              invariant_cache: dict[tuple[str, str], tuple]) -> list[dict[str, Any]]:
+    """Attack one batch once and register it with every target; return the rows.
+
+    Each sample's random stream comes from (seed, attack, budget, sample id), so the rows do not
+    depend on the batch. An attack that is ``budget_invariant`` is registered once per batch."""
     B = len(batch)
-    gen = torch.Generator().manual_seed(_stable_seed(seed, attack.name, budget, batch.samples[0].id))
     t0 = time.perf_counter()
     try:
-        out: AttackOutput = attack.run(batch, budget, surrogate=surrogate, generator=gen)
+        out: AttackOutput = attack.run(batch, budget, surrogate=surrogate, generator=int(seed))
         attack_err = ""
     except Exception as exc:  # a crashing plugin becomes failed rows, the run goes on
         out, attack_err = None, f"{type(exc).__name__}: {exc}"
     attack_time = (time.perf_counter() - t0) / B
+    ids = [s.id for s in batch.samples]
+    metas = [s.meta for s in batch.samples]
     rows: list[dict[str, Any]] = []
     for tname, target in targets.items():
-        base = _rows_for_unit(batch.samples, attack.name, tname, budget, seed, cfg)
+        base = _base_rows(ids, metas, attack.name, tname, budget, seed, cfg)
         if out is None:
             for r in base:
                 r.update(status="error", converged=False, error=attack_err,
                          attack_time_s=attack_time)
             rows += base
             continue
-        cache_key = tname
+        cache_key = (attack.name, tname)
         t1 = time.perf_counter()
         try:
-            if attack.name == "none" and cache_key in none_cache:
-                reg_T, conv, iters, inl, status = none_cache[cache_key]
+            if attack.budget_invariant and cache_key in invariant_cache:
+                reg_T, conv, iters, inl, status = invariant_cache[cache_key]
             else:
                 maps = batch.maps if target.differentiable else _prepared(target, tname, batch,
                                                                          prepared)
@@ -351,8 +505,8 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
                 reg_T, conv, iters, inl, status = (reg.T.detach().to(torch.float64),
                                                    reg.converged, reg.iterations,
                                                    reg.inlier_fraction, reg.status)
-                if attack.name == "none":
-                    none_cache[cache_key] = (reg_T, conv, iters, inl, status)
+                if attack.budget_invariant:
+                    invariant_cache[cache_key] = (reg_T, conv, iters, inl, status)
             icp_err = ""
         except Exception as exc:
             icp_err = f"{type(exc).__name__}: {exc}"
@@ -385,8 +539,3 @@ def _prepared(target: Target, tname: str, batch: Batch, cache: dict[str, dict[st
             cache[tname][s.id] = target.prepare(s.map, s.map_normals)
         out.append(cache[tname][s.id])
     return out
-
-
-def completed_keys(store: ResultsStore) -> set[tuple]:
-    """Keys of the rows already in a store (for tests)."""
-    return {row_key(r) for r in store._read_rows()}

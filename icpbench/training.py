@@ -33,7 +33,7 @@ import torch
 from icpbench import distributed as ddp
 from icpbench import registry
 from icpbench.attacks.base import project_to_ball
-from icpbench.errors import InputError
+from icpbench.errors import CheckpointError, InputError
 from icpbench.generator.prior import sector_prior, sector_prior_batch
 from icpbench.losses import adversarial_loss, reconstruction_loss, weights
 from icpbench.progress import progress_bar
@@ -178,6 +178,9 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     cfg_path = out / "train_config.json"
     if cfg_path.exists() and json.loads(cfg_path.read_text()) != asdict(cfg):
         raise InputError(f"{out} holds a training run with another configuration; use a new --out")
+    if not cfg_path.exists() and any((out / f).exists() for f in ("generator.pt", "generator.json")):
+        raise InputError(f"{out} already holds a generator.pt/.json that no training run in this "
+                         "folder wrote; training would overwrite it: use a new --out")
     if ctx.is_main:
         write_json_atomic(cfg_path, asdict(cfg))
     w = weights(cfg.weights)
@@ -206,7 +209,11 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
         sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step_epochs,
                                                 gamma=cfg.lr_gamma)
-        st = torch.load(state_path, weights_only=True, map_location="cpu")
+        try:
+            st = torch.load(state_path, weights_only=True, map_location="cpu")
+        except Exception as exc:  # truncated or corrupt: torch says "Invalid argument" or similar
+            raise CheckpointError(f"{state_path} is truncated or corrupt ({type(exc).__name__}); "
+                                  "delete it (and generator.pt) to train from scratch") from exc
         opt.load_state_dict(st["optimizer"])
         sched.load_state_dict(st["scheduler"])
         start_epoch, wall_before = int(st["epoch"]), float(st["wall_s"])

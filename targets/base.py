@@ -17,15 +17,58 @@ from icpbench.types import Registration
 
 
 class Target(ABC):
-    """An ICP variant under attack.
+    """An ICP variant under attack, and the whole contract between a target plugin and the runner.
 
     Subclasses set ``name``, ``description`` and ``differentiable`` and implement :meth:`prepare`
     (built once per map, then cached by the caller) and :meth:`register`.
+
+    Construction: the runner calls ``cls(preset, **settings)``. ``preset`` is the run's ICP preset
+    (a name such as ``"lidar"`` or ``"objects"``, see :mod:`icpbench.targets.icp`, or an
+    ``ICPConfig``); ``settings`` are the user's ``--target-param NAME.KEY=VALUE`` values, checked
+    against :meth:`param_types` before the target is built. A target built on the shared ICP
+    settings keeps them in :attr:`config`.
     """
 
+    #: Registry key; must equal the entry-point name the plugin is registered under.
     name: ClassVar[str] = ""
+    #: One line for ``icpbench list``.
     description: ClassVar[str] = ""
+    #: :meth:`register` is differentiable with respect to the scans (usable as a surrogate of
+    #: gradient attacks); it then receives the batch's ``MapIndex`` maps instead of prepared ones.
     differentiable: ClassVar[bool] = False
+    #: The target's ICP settings (an ``icpbench.targets.icp.ICPConfig``), or None for a target
+    #: that does not use them.
+    config: Any = None
+
+    @classmethod
+    def param_types(cls) -> dict[str, Any]:
+        """Settings the target accepts (name -> type hint): the named keyword parameters of its
+        ``__init__`` after the preset and, if ``__init__`` takes ``**overrides``, the fields of
+        ``ICPConfig`` (the overrides of the preset). Unknown settings are refused and values are
+        coerced to these types before the target is built."""
+        from icpbench.registry import accepts_extra, keyword_params
+
+        params = keyword_params(cls.__init__)
+        params.pop(next(iter(params), ""), None)  # the preset (first parameter)
+        if accepts_extra(cls.__init__):
+            from dataclasses import fields
+
+            from icpbench.targets.icp import ICPConfig
+
+            hints = keyword_params(ICPConfig.__init__)
+            params = {**{f.name: hints.get(f.name, Any) for f in fields(ICPConfig)}, **params}
+        return params
+
+    def with_max_iterations(self, n: int) -> Target:
+        """A target like this one whose ICP stops after at most ``n`` iterations (the ``pgd``
+        attack runs its surrogate with a smaller cap inside the ascent loop).
+
+        Default: ``type(self)(self.config.with_(max_iterations=n))`` by the constructor contract,
+        or ``self`` for a target without :attr:`config`. Targets with other constructor settings
+        that must survive override this."""
+        if self.config is None:
+            return self
+        return type(self)(self.config.with_(max_iterations=int(n)))
 
     @abstractmethod
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray) -> Any:

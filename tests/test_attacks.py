@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from icpbench.attacks.base import displacement_stats, project_to_ball
+from icpbench.attacks.base import SampleGenerators, displacement_stats, project_to_ball
 from icpbench.attacks.none import NoAttack
 from icpbench.attacks.normal import NormalTranslationAttack
 from icpbench.attacks.pgd import PGDAttack
@@ -45,7 +45,7 @@ def test_normal_follows_consistently_oriented_normals(batch):
     out = NormalTranslationAttack().run(batch, 1.0, generator=0)
     d = out.scans - batch.scans
     # all displacements point into the half-plane of the sample's drawn direction u
-    u = random_xy_directions(batch, torch.Generator().manual_seed(0))
+    u = random_xy_directions(batch, SampleGenerators.for_batch(batch, 0, "normal", 1.0))
     assert ((d * u[:, None, :]).sum(-1) >= -1e-9).all()
     assert (torch.linalg.norm(d[..., :2], dim=-1) - 1.0).abs().max() < 1e-9
 

@@ -40,7 +40,9 @@ def _cfg(**kw) -> RunConfig:
                 targets=["p2plane", "open3d"], budgets=[0.5, 1.0], samples=6, batch_size=2,
                 dataset_params={"n_samples": 6},
                 target_params={"p2plane": {"max_iterations": 30}, "open3d": {"max_iterations": 30}})
-    return RunConfig(**{**base, **kw})
+    cfg = {**base, **kw}  # settings only for the targets in the run (others are refused)
+    cfg["target_params"] = {t: p for t, p in cfg["target_params"].items() if t in cfg["targets"]}
+    return RunConfig(**cfg)
 
 
 def _rows_without_timing(out_dir) -> list[tuple]:
@@ -113,6 +115,8 @@ PLUGIN = textwrap.dedent('''
     class BadSampleDataset(SyntheticSceneDataset):
         """The synthetic scene whose sample 3 has a NaN scan point."""
 
+        name = "ray-test-bad"
+
         def __getitem__(self, i):
             s = super().__getitem__(i)
             if i == 3:
@@ -164,6 +168,7 @@ def local_reference(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_ray_results_equal_local_results(ray_cluster, local_reference, tmp_path):
     run(_cfg(executor="ray"), tmp_path, progress=False)
     local, on_ray = _rows_without_timing(local_reference), _rows_without_timing(tmp_path)
@@ -175,6 +180,7 @@ def test_ray_results_equal_local_results(ray_cluster, local_reference, tmp_path)
     assert read_manifest(local_reference)["execution"] == {"executor": "local"}
 
 
+@pytest.mark.slow
 def test_resume_a_local_run_on_ray(ray_cluster, local_reference, tmp_path):
     class Stop(Exception):
         pass
@@ -192,6 +198,7 @@ def test_resume_a_local_run_on_ray(ray_cluster, local_reference, tmp_path):
     assert len(resumed) == len(set(resumed)) == 6 * 3 * 2 * 2
 
 
+@pytest.mark.slow
 def test_crash_inside_a_ray_worker_becomes_error_rows(ray_cluster, tmp_path):
     cfg = _cfg(attacks=["ray-test-crash", "uniform"], targets=["p2plane"], executor="ray")
     run(cfg, tmp_path, progress=False)
@@ -202,8 +209,10 @@ def test_crash_inside_a_ray_worker_becomes_error_rows(ray_cluster, tmp_path):
     assert (df[df["attack"] == "uniform"]["status"] == "ok").all()
 
 
+@pytest.mark.slow
 def test_input_error_in_a_ray_worker_reaches_the_driver_unwrapped(ray_cluster, tmp_path):
-    cfg = _cfg(dataset="ray-test-bad", attacks=["none"], targets=["p2plane"], executor="ray")
+    cfg = _cfg(dataset="ray-test-bad", attacks=["none"], targets=["p2plane"], executor="ray",
+               strict_files=True)  # without it the bad sample is skipped (error rows)
     msg = r"^sample 'synthetic/test/000003': scan has 1 point\(s\) with NaN or Inf coordinates$"
     with pytest.raises(InputError, match=msg):
         run(cfg, tmp_path, progress=False)
@@ -216,6 +225,7 @@ class _DriverOnly(UniformTranslationAttack):
     name = "driver-only-test-attack"
 
 
+@pytest.mark.slow
 def test_a_plugin_ray_workers_cannot_load_is_a_clear_error(ray_cluster, tmp_path):
     registry.attacks.register("driver-only-test-attack", _DriverOnly)  # in this process only
     try:
@@ -238,6 +248,7 @@ class _SlowFirst:
         return _SlowFirst
 
 
+@pytest.mark.slow
 def test_ray_executor_yields_in_item_order(ray_cluster):
     ray_cluster.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     items = [WorkItem(seed=0, start=s, stop=s + 1, units=((1.0, "a"), (2.0, "b")))

@@ -29,13 +29,30 @@ class Dataset(ABC):
         default_budgets: budgets (metres or normalised units) used when none are given.
 
     ``dataset[i]`` returns the i-th sample of the chosen split; the same constructor arguments
-    always give the same samples.
+    always give the same samples. Construction: the runner calls ``cls(seed=..., split=...,
+    **settings)`` with the user's ``--dataset-param KEY=VALUE`` settings, checked against
+    :meth:`param_types`. A sample whose input file is bad raises :class:`InputError` naming the file
+    from ``dataset[i]``; the runner then skips that sample (error rows) unless ``strict_files``.
     """
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     icp_preset: ClassVar[str] = "lidar"
     default_budgets: ClassVar[tuple[float, ...]] = (1.0, 2.0, 3.0, 4.0, 5.0)
+
+    @classmethod
+    def param_types(cls) -> dict[str, Any]:
+        """Settings the dataset accepts (name -> type hint), i.e. its ``--dataset-param`` keys: the
+        named keyword parameters of ``__init__`` except ``seed`` and ``split`` (set by the run).
+        Unknown settings are refused and values are coerced to these types before it is built."""
+        from icpbench.registry import keyword_params
+
+        return keyword_params(cls.__init__, skip=("seed", "split"))
+
+    def sample_id(self, i: int) -> str:
+        """The id of sample ``i`` (default: loads the sample; datasets override it with a cheap
+        lookup, so the runner can name a sample whose file cannot be read)."""
+        return self[i].id
 
     def __init__(self, *, seed: int = 0, split: Split = "test", **params: Any) -> None:
         if split not in ("train", "test", "all"):

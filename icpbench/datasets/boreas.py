@@ -169,6 +169,10 @@ class _Drive:
         if do_deskew:
             pts = deskew(pts, raw[:, 5], self.body_rate[k])
         pts = pts[np.linalg.norm(pts, axis=1) >= min_range_m]
+        if len(pts) < 6:
+            raise InputError(f"Boreas lidar scan {self.bins[k]} has {len(pts)} point(s) farther than "
+                             f"min_range_m = {min_range_m:g} m (an all-zero or empty scan); at least "
+                             "6 are needed")
         return sm.transform(sm.inv(self.T_lidar_V), pts)
 
 
@@ -249,13 +253,33 @@ class BoreasDataset(Dataset):
     def __len__(self) -> int:
         return len(self._index)
 
+    def sample_id(self, i: int) -> str:
+        """The id of sample ``i`` without reading its files."""
+        name, k, _ = self._index[i]
+        return f"boreas/{name}/{int(self.repeats[name].t_us[k])}"
+
+    def _submap_keyframes(self, j: int) -> np.ndarray:
+        """Teach frames whose scans form the submap around keyframe position j."""
+        d_kf = self.teach.dist[self.keyframes]
+        return self.keyframes[np.abs(d_kf - d_kf[j]) <= self._gen["submap_window_m"]]
+
+    def _inputs_key(self, drive: _Drive, k: int, j: int) -> str:
+        """A key of every lidar file a sample reads (name, size, mtime): a replaced file is never
+        served from a stale cache entry."""
+        files = [drive.bins[k], *(self.teach.bins[int(m)] for m in self._submap_keyframes(j))]
+        try:
+            stats = [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+        except OSError as exc:
+            raise InputError(f"Boreas lidar scan {exc.filename} cannot be read ({exc.strerror})") from exc
+        return sm.params_hash({"files": stats}, FORMAT_VERSION)
+
     def __getitem__(self, i: int) -> Sample:
         if not -len(self) <= i < len(self):
             raise IndexError(f"sample index {i} out of range for {len(self)} samples")
         name, k, j = self._index[i]
         drive = self.repeats[name]
         t_us = int(drive.t_us[k])
-        path = self.cache_root / name / f"{t_us}.npz"
+        path = self.cache_root / name / f"{t_us}-{self._inputs_key(drive, k, j)}.npz"
         rec = sm.load_npz(path)
         if rec is None:
             rec = self._build(drive, k, j)
@@ -281,8 +305,7 @@ class BoreasDataset(Dataset):
         idx = sm.spatial_subsample(scan, g["n_points"], g["scan_voxel_m"],
                                    sm.sample_rng(self.seed, t_us & 0xFFFFFFFF, t_us >> 32, 3))
         teach = self.teach
-        d_kf = teach.dist[self.keyframes]
-        use = self.keyframes[np.abs(d_kf - d_kf[j]) <= g["submap_window_m"]]
+        use = self._submap_keyframes(j)
         T_live_enu = sm.inv(drive.T_enu_V[k])
         clouds = [(sm.transform(T_live_enu @ teach.T_enu_V[m], self._teach_scan(int(m))), None)
                   for m in use]

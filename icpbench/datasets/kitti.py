@@ -73,9 +73,12 @@ def read_kitti_poses(path: Path) -> np.ndarray:
             vals = np.array([float(v) for v in line.split()])
         except ValueError:
             raise InputError(f"{path}:{n}: pose line has non-numeric values") from None
-        if vals.size != 12 or not np.all(np.isfinite(vals)):
-            raise InputError(f"{path}:{n}: a pose line needs 12 finite numbers (3x4 row-major), "
+        if vals.size != 12:
+            raise InputError(f"{path}:{n}: a pose line needs 12 numbers (3x4 row-major), "
                              f"got {vals.size}")
+        if not np.all(np.isfinite(vals)):
+            raise InputError(f"{path}:{n}: the pose line has {int((~np.isfinite(vals)).sum())} "
+                             "NaN or Inf value(s); a pose needs 12 finite numbers")
         T = np.eye(4)
         T[:3] = vals.reshape(3, 4)
         poses.append(T)
@@ -96,7 +99,8 @@ class KittiDataset(Dataset):
         n_points, scan_voxel_m, min_range_m: scan size, spreading voxel, ego-vehicle crop (m).
         map_voxel_m, map_radius_m, normal_radius_m: submap voxel, crop radius, normal PCA radius.
         offset_trans_m, offset_rot_deg: the random initial offset (paper: 0.3 m, 10 deg).
-        cache_dir: cache root (built submaps are cached, keyed by the parameters and input files).
+        cache_dir: cache root (built submaps are cached, keyed by the parameters, the pose and
+            calibration files and the name, size and mtime of every scan file a sample reads).
         split: recorded only; KITTI has no split, choose sequences for training and testing.
     """
 
@@ -163,11 +167,34 @@ class KittiDataset(Dataset):
     def __len__(self) -> int:
         return len(self._index)
 
+    def sample_id(self, i: int) -> str:
+        """The id of sample ``i`` without reading its files."""
+        return f"kitti/{self.sequence}/{self.frame_ids[self._index[i]]:06d}"
+
+    def _neighbours(self, k: int) -> list[int]:
+        """Frames (indices into ``bins``) whose scans form the submap of frame k."""
+        g = self._gen
+        lo, hi = max(0, k - g["window"]), min(len(self.bins), k + g["window"] + 1)
+        return [j for j in range(lo, hi, g["map_stride"]) if j != k]
+
+    def _inputs_key(self, k: int) -> str:
+        """A key of the contents of every scan file sample k reads (name, size, mtime), so that a
+        replaced or rewritten file is not served from a stale cache entry."""
+        stats = []
+        for j in [k, *self._neighbours(k)]:
+            st = self.bins[j].stat()
+            stats.append([self.bins[j].name, st.st_size, st.st_mtime_ns])
+        return sm.params_hash({"files": stats}, FORMAT_VERSION)
+
     def __getitem__(self, i: int) -> Sample:
         if not -len(self) <= i < len(self):
             raise IndexError(f"sample index {i} out of range for {len(self)} samples")
         k = self._index[i]
-        path = self.cache_root / f"{self.frame_ids[k]:06d}.npz"
+        try:
+            key = self._inputs_key(k)
+        except OSError as exc:
+            raise InputError(f"KITTI scan {exc.filename} cannot be read ({exc.strerror})") from exc
+        path = self.cache_root / f"{self.frame_ids[k]:06d}-{key}.npz"
         rec = sm.load_npz(path)
         if rec is None:
             rec = self._build(k)
@@ -177,13 +204,18 @@ class KittiDataset(Dataset):
                 "pass": self.sequence, "frame": int(self.frame_ids[k]),
                 "n_map_frames": int(rec["n_map_frames"])}
         rng = sm.sample_rng(self.seed, int(self.frame_ids[k]), 4, _seq_key(self.sequence))
-        return sm.make_sample(f"kitti/{self.sequence}/{self.frame_ids[k]:06d}", rec["scan"], rec["map"],
+        return sm.make_sample(self.sample_id(i), rec["scan"], rec["map"],
                               rec["normals"], rng, meta, *self.offset)
 
     def _scan(self, k: int) -> np.ndarray:
         """Scan k (K, 3), Velodyne frame, returns nearer than ``min_range_m`` removed."""
         pts = read_kitti_bin(self.bins[k])
-        return pts[np.linalg.norm(pts, axis=1) >= self._gen["min_range_m"]]
+        pts = pts[np.linalg.norm(pts, axis=1) >= self._gen["min_range_m"]]
+        if len(pts) < 6:
+            raise InputError(f"KITTI scan {self.bins[k]} has {len(pts)} point(s) farther than "
+                             f"min_range_m = {self._gen['min_range_m']:g} m (an all-zero or "
+                             "empty scan); at least 6 are needed")
+        return pts
 
     def _map_scan(self, k: int) -> np.ndarray:
         """Scan k voxel-averaged at the submap voxel size (what submaps accumulate), cached."""
@@ -194,8 +226,7 @@ class KittiDataset(Dataset):
         scan = self._scan(k)
         idx = sm.spatial_subsample(scan, g["n_points"], g["scan_voxel_m"],
                                    sm.sample_rng(self.seed, int(self.frame_ids[k]), 3))
-        lo, hi = max(0, k - g["window"]), min(len(self.bins), k + g["window"] + 1)
-        nbrs = [j for j in range(lo, hi, g["map_stride"]) if j != k]
+        nbrs = self._neighbours(k)
         if not nbrs:
             raise InputError(f"frame {self.frame_ids[k]} has no neighbouring frames for a submap")
         T_k_inv = sm.inv(self.T_velo[k])

@@ -467,6 +467,21 @@ class MeshFolderDataset(Dataset):
         if n_samples is not None:
             self.entries = self.entries[:n_samples]
 
+    @classmethod
+    def param_types(cls) -> dict[str, Any]:
+        """The named settings plus the :class:`ObjectSampling` fields (``**sampling``)."""
+        from dataclasses import fields
+
+        from icpbench.registry import keyword_params
+
+        hints = keyword_params(ObjectSampling.__init__)
+        return {**super().param_types(), **{f.name: hints.get(f.name, Any)
+                                            for f in fields(ObjectSampling)}}
+
+    def sample_id(self, i: int) -> str:
+        """The id of sample ``i`` without reading its file."""
+        return f"{self.id_prefix}/{self.entries[i].key}"
+
     def _index(self, test_fraction: float) -> list[MeshEntry]:
         files = find_mesh_files(self.root)
         keys = [model_key(self.root, p) for p in files]
@@ -505,5 +520,8 @@ class MeshFolderDataset(Dataset):
             V = _y_up_to_z_up(V)
         meta = {"category": e.category, "model_id": e.key, "path": str(e.path), "split": e.split,
                 "up_axis": up}
-        return mesh_sample(V, F, sample_id=f"{self.id_prefix}/{e.key}",
-                           seed=[self.seed, _key_seed(e.key)], sampling=self.sampling, meta=meta)
+        try:
+            return mesh_sample(V, F, sample_id=self.sample_id(i),
+                               seed=[self.seed, _key_seed(e.key)], sampling=self.sampling, meta=meta)
+        except InputError as exc:  # degenerate geometry: name the file it came from
+            raise InputError(f"mesh file {e.path}: {exc}") from exc

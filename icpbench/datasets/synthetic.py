@@ -7,9 +7,11 @@ independent surface sampling of the same scene seen from a randomly offset senso
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+import math
+from typing import ClassVar
 
 from icpbench.datasets.base import Dataset
+from icpbench.errors import InputError
 from icpbench.synthetic import scene_sample
 from icpbench.types import Sample
 
@@ -22,10 +24,18 @@ class SyntheticSceneDataset(Dataset):
     icp_preset: ClassVar[str] = "lidar"
 
     def __init__(self, *, seed: int = 0, split: str = "test", n_samples: int = 16,
-                 n_scan: int = 2_000, n_map: int = 20_000, noise_m: float = 0.02,
-                 **params: Any) -> None:
+                 n_scan: int = 2_000, n_map: int = 20_000, noise_m: float = 0.02) -> None:
+        if split not in ("train", "test", "all"):
+            raise InputError(f"split must be one of train, test, all; got {split!r}")
+        if n_samples < 0:
+            raise InputError(f"n_samples must be >= 0, got {n_samples}")
+        for key, n in (("n_scan", n_scan), ("n_map", n_map)):
+            if n < 6:
+                raise InputError(f"{key} must be >= 6 points (a 6-DoF pose needs 6), got {n}")
+        if not (math.isfinite(noise_m) and noise_m >= 0):
+            raise InputError(f"noise_m must be a finite number of metres >= 0, got {noise_m}")
         super().__init__(seed=seed, split=split, n_samples=n_samples, n_scan=n_scan, n_map=n_map,
-                         noise_m=noise_m, **params)
+                         noise_m=noise_m)
         self.n_samples, self.n_scan, self.n_map, self.noise_m = n_samples, n_scan, n_map, noise_m
         self._offset = {"test": 0, "train": 100_000, "all": 0}[split]
 
@@ -37,7 +47,7 @@ class SyntheticSceneDataset(Dataset):
 
     def __getitem__(self, i: int) -> Sample:
         if not 0 <= i < len(self):
-            raise IndexError(i)
+            raise IndexError(f"sample index {i} out of range for {len(self)} samples")
         s = scene_sample(self.n_scan, self.n_map, seed=self._offset + self.seed * 1_000 + i,
                          noise_m=self.noise_m, scene_seed=self.seed)
         return Sample(id=self.sample_id(i), scan=s.scan, map=s.map, map_normals=s.map_normals,

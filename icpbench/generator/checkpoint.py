@@ -28,6 +28,17 @@ from icpbench.generator.network import Generator, GeneratorConfig
 
 FORMAT = "icpbench-generator"
 FORMAT_VERSION = 1
+#: State-dict entry holding the SHA-256 of the JSON's network config, written at save time: a JSON
+#: edited afterwards (same tensor shapes, other behaviour) is refused. Older files lack it.
+CONFIG_HASH_KEY = "_icpbench_config_sha256"
+
+
+def config_hash(config: Mapping[str, Any]) -> torch.Tensor:
+    """SHA-256 (32 uint8) of a generator config dict, as canonical JSON."""
+    import hashlib
+
+    blob = json.dumps(dict(config), sort_keys=True, allow_nan=False).encode()
+    return torch.tensor(list(hashlib.sha256(blob).digest()), dtype=torch.uint8)
 
 
 @dataclass
@@ -87,6 +98,7 @@ def save_checkpoint(model: Generator, path: str | os.PathLike[str],
     except (TypeError, ValueError) as e:
         raise InputError(f"the model card must be JSON-serialisable (str, numbers, lists, dicts): {e}") from e
     state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    state[CONFIG_HASH_KEY] = config_hash(meta["config"])
     p.parent.mkdir(parents=True, exist_ok=True)
     _atomic_write(p, lambda t: torch.save(state, t))
     _atomic_write(json_path, lambda t: t.write_text(text + "\n", encoding="utf-8"))
@@ -189,8 +201,13 @@ def load_checkpoint(path: str | os.PathLike[str],
         raise CheckpointError(f"generator checkpoint not found: {p}")
     cfg, meta = read_checkpoint_meta(p)
     state = _load_state(p, map_location)
+    stored = state.pop(CONFIG_HASH_KEY, None)
     model = Generator(cfg)
     check_state_dict(model, state, str(p))
+    if stored is not None and not torch.equal(stored.cpu(), config_hash(meta["config"])):
+        raise CheckpointError(f"{config_path(p)} was edited after {p.name} was saved (its network "
+                              "config no longer matches the hash stored with the weights); restore "
+                              "it or re-save the checkpoint with save_checkpoint")
     model.load_state_dict(state)
     model.to(map_location).eval()
     return LoadedGenerator(model=model, config=cfg, card=meta["card"], meta=meta)

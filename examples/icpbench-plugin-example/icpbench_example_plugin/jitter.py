@@ -14,5 +14,5 @@ class JitterAttack(Attack):
     description: ClassVar[str] = "Move every point by lambda in a random 3-D direction (example plugin)"
 
     def _perturb(self, batch, budget_m, *, surrogate, generator):
-        d = torch.randn(batch.scans.shape, generator=generator, dtype=batch.scans.dtype)
+        d = generator.randn(*batch.scans.shape[1:], dtype=batch.scans.dtype)  # one stream per sample
         return batch.scans + budget_m * d / torch.linalg.norm(d, dim=-1, keepdim=True)
