@@ -15,7 +15,7 @@ OUT=results/table1-run
 rm -rf "$OUT"
 icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,generator --targets p2plane \
   --budgets 1,2,3,4,5 --samples "$SAMPLES" --batch-size 4 --reference generator \
-  --executor "$EXECUTOR" --out "$OUT" --quiet
+  --executor "$EXECUTOR" --out "$OUT"
 for fmt in md latex csv; do
   ext=$fmt; [ "$fmt" = latex ] && ext=tex
   icpbench table "$OUT" --format "$fmt" --reference generator --out "results/table1.$ext"

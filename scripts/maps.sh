@@ -4,8 +4,8 @@
 # map and the comparison figure (paper fig. 6) are produced by the second command.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-icpbench map --attack sector --budget 1 --dataset lidar-sim --out results/lidar-sim-map-sector --quiet
+icpbench map --attack sector --budget 1 --dataset lidar-sim --out results/lidar-sim-map-sector
 if [ -f icpbench/checkpoints/lidar-sim/generator.pt ]; then
   icpbench map --attack generator --compare sector --budget 1 --dataset lidar-sim \
-    --out results/lidar-sim-map-generator --quiet
+    --out results/lidar-sim-map-generator
 fi

@@ -9,7 +9,7 @@ CK=icpbench/checkpoints/objects
 if [ "${RETRAIN:-0}" = 1 ]; then
   for w in theta-only x-only xy; do
     icpbench train --preset quick-objects --weights $w --train-samples 128 --eval-samples 16 \
-      --pretrain-epochs 0 --epochs 6 --batch-size 8 --max-minutes 12 --out runs/objects-$w --quiet
+      --pretrain-epochs 0 --epochs 6 --batch-size 8 --max-minutes 12 --out runs/objects-$w
   done
   cp runs/objects-xy/generator.pt $CK/generator.pt; cp runs/objects-xy/generator.json $CK/generator.json
   for w in theta-only x-only; do

@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 OUT=results/objects-demo
 rm -rf "$OUT"
 icpbench run --dataset objects --attacks none,uniform,normal,sector,pgd --targets p2plane \
-  --budgets 0.02,0.05 --samples 20 --reference pgd --out "$OUT" --quiet
+  --budgets 0.02,0.05 --samples 20 --reference pgd --out "$OUT"
 for fmt in md latex csv; do
   ext=$fmt; [ "$fmt" = latex ] && ext=tex
   icpbench table "$OUT" --format "$fmt" --reference pgd --out "$OUT/table1.$ext"

@@ -9,7 +9,7 @@ OUT=results/lidar-sim-oracle
 SAMPLES=${SAMPLES:-48}
 rm -rf "$OUT"
 icpbench run --dataset lidar-sim --attacks normal,generator,pgd --targets p2plane --budgets 1 \
-  --samples "$SAMPLES" --batch-size 4 --reference pgd --out "$OUT" --quiet
+  --samples "$SAMPLES" --batch-size 4 --reference pgd --out "$OUT"
 icpbench table "$OUT" --reference pgd --out "$OUT/table_pgd_reference.md"
 icpbench table "$OUT" --reference generator --out "$OUT/table_generator_reference.md"
 cat "$OUT/table_pgd_reference.md"

@@ -27,13 +27,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 RUNS=${RUNS:-runs}
 DEST=icpbench/checkpoints/lidar-sim
-icpbench train --preset quick-lidar --out "$RUNS/lidar-gen" --quiet
+icpbench train --preset quick-lidar --out "$RUNS/lidar-gen"
 prev="$RUNS/lidar-gen"
 for stage in 2:5e-4 3:3e-4; do
   n=${stage%%:*}
   lr=${stage##*:}
   icpbench train --preset quick-lidar --init "$prev/generator.pt" --train-samples 744 --epochs 1 \
-    --lr "$lr" --out "$RUNS/lidar-gen-$n" --quiet
+    --lr "$lr" --out "$RUNS/lidar-gen-$n"
   prev="$RUNS/lidar-gen-$n"
 done
 mkdir -p "$DEST"

@@ -7,6 +7,6 @@ OUT=results/lidar-sim-transfer
 rm -rf "$OUT"
 icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,generator,pgd \
   --targets p2plane,p2point,open3d,kiss-icp,small-gicp --budgets 1 --samples 20 --batch-size 4 \
-  --reference pgd --out "$OUT" --quiet
+  --reference pgd --out "$OUT"
 icpbench table "$OUT" --transfer 1 --out "$OUT/transfer.md"
 icpbench table "$OUT" --reference pgd --target p2plane --out "$OUT/table1_p2plane.md"

@@ -19,4 +19,4 @@ if [[ $# -ge 2 ]]; then
 fi
 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} icpbench run --dataset lidar-sim --dataset-param n_passes=7 \
   --dataset-param "test_passes=[7]" --attacks uniform,normal,generator --targets p2plane \
-  --budgets 1,2,3,4,5 --samples 48 --batch-size 4 --out "$OUT" --quiet "${ARGS[@]}"
+  --budgets 1,2,3,4,5 --samples 48 --batch-size 4 --out "$OUT" "${ARGS[@]}"

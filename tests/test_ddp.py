@@ -73,6 +73,7 @@ def _weights(out) -> dict[str, torch.Tensor]:
     return torch.load(out / "generator.pt", weights_only=True)
 
 
+@pytest.mark.slow
 def test_torchrun_two_gloo_ranks_equal_single_process_training(tmp_path):
     out = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",

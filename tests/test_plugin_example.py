@@ -8,6 +8,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+pytestmark = pytest.mark.slow  # pip-installs the example and runs the CLI in subprocesses
+
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "icpbench-plugin-example"
 
 
