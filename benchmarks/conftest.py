@@ -8,7 +8,7 @@ import torch
 
 torch.set_num_threads(1)
 
-#: (case, phase) -> ratio of our median time to Open3D's median time, filled by bench_icp.py.
+#: (case, phase) -> our median time, Open3D's median time and their ratio, filled by the benches.
 RATIOS: dict[tuple[str, str], dict[str, float]] = {}
 
 
@@ -21,8 +21,9 @@ def pytest_terminal_summary(terminalreporter) -> None:
     if not RATIOS:
         return
     tr = terminalreporter
-    tr.section("p2plane vs Open3D registration_icp (medians, equal iterations)")
-    tr.write_line(f"{'case':<28} {'phase':<14} {'ours ms':>9} {'open3d ms':>10} {'ratio':>7}")
+    tr.section("ratios to Open3D registration_icp measured in the same run (medians)")
+    tr.write_line(f"{'case':<28} {'phase':<16} {'ours ms':>9} {'open3d ms':>10} {'ratio':>7}")
     for (case, phase), r in RATIOS.items():
-        tr.write_line(f"{case:<28} {phase:<14} {1e3 * r['ours_s']:>9.1f} {1e3 * r['open3d_s']:>10.1f} "
-                      f"{r['ratio']:>7.2f}")
+        extra = f"  ({r['scans_per_s']:.2f} scans/s)" if "scans_per_s" in r else ""
+        tr.write_line(f"{case:<28} {phase:<16} {1e3 * r['ours_s']:>9.1f} {1e3 * r['open3d_s']:>10.1f} "
+                      f"{r['ratio']:>7.2f}{extra}")

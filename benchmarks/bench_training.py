@@ -1,0 +1,97 @@
+"""Training throughput of the shipped recipe, on 1 process and on 2 data-parallel processes.
+
+Run: ``python -m pytest benchmarks/bench_training.py --benchmark-enable`` (about 2 minutes on
+2 cores).
+
+The recipe is ``train_config("quick-lidar")`` (the shipped lidar-sim generator's: bounded output,
+lambda-conditioned, batch 2, lidar-train ICP with 25 unrolled iterations, 1 torch thread per
+process), shortened to ``SCANS`` training scans and one epoch (and one held-out scan for the card's
+evaluation, outside the timed loop). Throughput is scans per second of the epoch loop
+(``train_wall_s`` of the model card: data loading, index precompute and evaluation excluded).
+
+* ``train-1proc``: ``python -m icpbench.cli train`` (one process);
+* ``train-2proc-ddp``: ``torchrun --nproc_per_node 2 -m icpbench.cli train`` (gloo,
+  DistributedDataParallel; each process trains on half of the scans);
+* ``+retain``: the same with glibc told to keep freed memory (``MALLOC_MMAP_THRESHOLD_`` and
+  ``MALLOC_TRIM_THRESHOLD_``, what :func:`icpbench.allocator.retain_freed_memory` sets).
+
+Each is printed as seconds per training scan divided by the fixed reference (``reference.py``:
+one 30-iteration Open3D point-to-plane ICP of the first training scan against its map, measured in
+the same run); ``extra_info`` holds scans per second.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+from reference import open3d_icp
+
+from icpbench import registry
+from icpbench.generator.checkpoint import read_checkpoint_meta
+
+SCANS = 12
+CASE = "quick-lidar training"
+_REF: dict[str, float] = {}
+
+
+def _median(benchmark) -> float | None:
+    stats = getattr(benchmark, "stats", None)
+    return None if stats is None else float(stats.stats.median)
+
+
+def _record(benchmark, ratios, phase: str, per_scan_s: float) -> None:
+    benchmark.extra_info.update({"scans": SCANS, "scans_per_s": 1.0 / per_scan_s,
+                                 "torch_threads_per_process": 1})
+    if "open3d" in _REF:
+        benchmark.extra_info["ratio_vs_open3d"] = per_scan_s / _REF["open3d"]
+        ratios[(CASE, phase)] = {"ours_s": per_scan_s, "open3d_s": _REF["open3d"],
+                                 "ratio": per_scan_s / _REF["open3d"],
+                                 "scans_per_s": 1.0 / per_scan_s}
+
+
+def test_open3d_reference(benchmark, ratios):
+    sample = registry.datasets.get("lidar-sim")(seed=0, split="train")[0]
+    out = benchmark.pedantic(open3d_icp(sample), rounds=7, iterations=1, warmup_rounds=1)
+    assert out.fitness > 0.5
+    med = _median(benchmark)
+    if med is not None:
+        _REF["open3d"] = med
+        _record(benchmark, ratios, "open3d-icp-30", med)
+
+
+def _train(tmp_path, nproc: int, retain: bool) -> dict:
+    """Run the shortened recipe as ``icpbench train`` (``nproc`` > 1: under torchrun) and return
+    the model card."""
+    out = tmp_path / f"train-{nproc}-{int(retain)}"
+    args = ["-m", "icpbench.cli", "train", "--preset", "quick-lidar", "--train-samples", str(SCANS),
+            "--epochs", "1", "--eval-samples", "1", "--threads", "1", "--out", str(out)]
+    if nproc > 1:
+        args = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc), *args]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    if retain:  # the environment form of icpbench.allocator.retain_freed_memory()
+        env.update(MALLOC_MMAP_THRESHOLD_=str(2**31 - 1), MALLOC_TRIM_THRESHOLD_=str(2**31 - 1))
+    subprocess.run([sys.executable, *args], check=True, env=env, capture_output=True)
+    card = read_checkpoint_meta(out / "generator.pt")[1]["card"]
+    assert card["epochs_done"] == 1 and card["data"]["samples"] == SCANS
+    if nproc > 1:
+        assert card["distributed"]["world_size"] == nproc
+    return card
+
+
+@pytest.mark.parametrize("retain", [False, True], ids=["", "retain-memory"])
+@pytest.mark.parametrize("nproc", [1, 2])
+def test_train(benchmark, ratios, tmp_path, nproc, retain):
+    if retain and not retain_freed_memory_supported():
+        pytest.skip("not glibc")
+    card = benchmark.pedantic(lambda: _train(tmp_path, nproc, retain), rounds=1, iterations=1)
+    phase = "train-1proc" if nproc == 1 else f"train-{nproc}proc-ddp"
+    _record(benchmark, ratios, phase + ("+retain" if retain else ""), card["train_wall_s"] / SCANS)
+
+
+def retain_freed_memory_supported() -> bool:
+    import platform
+
+    return platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
