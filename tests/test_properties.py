@@ -147,7 +147,9 @@ def attacks(tmp_path_factory):
             prm.copy_(torch.randn(prm.shape, generator=gen) * 0.3)
     ckpt = save_checkpoint(G, tmp_path_factory.mktemp("gen") / "random.pt")
     params = {"pgd": {"steps": 2, "restarts": 1}, "sector": {"icp_preset": "objects"},
-              "generator": {"checkpoint": str(ckpt)}}
+              "generator": {"checkpoint": str(ckpt)},
+              "generator-refine": {"checkpoint": str(ckpt), "refine_steps": 1,
+                                   "refine_icp_iterations": 3}}
     names = [n for n in registry.attacks.names() if registry.attacks.available(n)[0]]
     assert {"none", "uniform", "normal", "sector", "pgd", "generator"} <= set(names)
     return {n: build_attack(n, True, params.get(n, {})) for n in names}
