@@ -143,7 +143,8 @@ class GeneratorAttack(Attack):
         if model.needs_prior:  # analytic channels from the map and the true pose (sector model)
             from icpbench.generator.prior import sector_prior_batch
 
-            prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps).to(self.device)
+            prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps,
+                                       model.config.prior_dmax).to(self.device)
         adv = model(x, geo, budget, prior)
         # the network runs in float32; add its displacement to the scans in their own precision, so
         # that rounding the input to float32 (~2e-6 m at 40 m) does not count as a displacement

@@ -197,7 +197,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             model = add_global_feature(model)
         if cfg.generator_overrides.get("prior", "none") != "none" and not model.needs_prior:
             model = add_prior(model, cfg.generator_overrides["prior"],
-                              float(cfg.generator_overrides.get("prior_gain", 2.0)))
+                              float(cfg.generator_overrides.get("prior_gain", 2.0)),
+                              float(cfg.generator_overrides.get("prior_dmax", 5.0)))
     else:
         model = Generator(gcfg).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr)
@@ -326,7 +327,8 @@ def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
     from icpbench.mapindex import MapIndex
 
     return torch.as_tensor(sector_prior(sample.scan, sample.T_gt,
-                                        MapIndex(sample.map, sample.map_normals)))[None]
+                                        MapIndex(sample.map, sample.map_normals),
+                                        model.config.prior_dmax))[None]
 
 
 def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
@@ -384,7 +386,8 @@ def evaluate(cfg: TrainConfig, ckpt: Path, *, progress: bool = False) -> dict[st
                 geo = lg.model.precompute(x)
                 prior = None
                 if lg.model.needs_prior:
-                    prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps).to(cfg.device)
+                    prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps,
+                                               lg.model.config.prior_dmax).to(cfg.device)
                 adv = lg.model(x.to(cfg.device), geo.to(cfg.device),
                                torch.full((len(batch),), float(lam)) if lg.model.needs_budget
                                else None, prior).cpu().double()

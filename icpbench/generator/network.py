@@ -115,6 +115,8 @@ class GeneratorConfig:
             of the head, and adds ``prior_gain`` times the sector attack's direction to its output
             before the bounded squashing (needs ``output="bounded"``); ``"none"``: coordinates only.
         prior_gain: initial value of the learnable gain of the prior direction (dimensionless).
+        prior_dmax: association gate of the prior channels (the ICP's d_max: 5 m for lidar, 0.3
+            for unit-scale objects).
     """
 
     a: float = 2.0
@@ -134,6 +136,7 @@ class GeneratorConfig:
     global_feature: bool = False
     prior: Prior = "none"
     prior_gain: float = 2.0
+    prior_dmax: float = 5.0
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -152,7 +155,7 @@ class GeneratorConfig:
                 raise InputError(f"{f.name} must be a number, got {v!r}")
             if hint is float:
                 object.__setattr__(self, f.name, float(v))  # 2 and 2.0 serialise alike
-        for name in ("scale_m", "offset_scale_m", "budget_scale_m"):
+        for name in ("scale_m", "offset_scale_m", "budget_scale_m", "prior_dmax"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
         if self.prior != "none" and self.output != "bounded":
@@ -201,7 +204,8 @@ class GeneratorConfig:
 
 #: Config fields introduced after the first shipped checkpoints, with the value that reproduces
 #: the behaviour of configs written before them.
-_ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0}
+_ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0,
+                                  "prior_dmax": 5.0}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).
@@ -230,7 +234,8 @@ def add_global_feature(model: Generator) -> Generator:
     return wide.train(model.training)
 
 
-def add_prior(model: Generator, kind: str = "sector", gain: float = 2.0) -> Generator:
+def add_prior(model: Generator, kind: str = "sector", gain: float = 2.0,
+              dmax: float = 5.0) -> Generator:
     """A copy of a coordinate-only bounded ``model`` that also takes the analytic prior channels.
 
     The new input weights (first SA level and first head layer) are zero, so the copy's network
@@ -243,8 +248,8 @@ def add_prior(model: Generator, kind: str = "sector", gain: float = 2.0) -> Gene
     if model.needs_prior:
         raise InputError("this generator already takes prior channels")
     p = next(model.parameters())
-    wide = Generator(model.config.with_(prior=kind, prior_gain=float(gain))).to(device=p.device,
-                                                                              dtype=p.dtype)
+    wide = Generator(model.config.with_(prior=kind, prior_gain=float(gain),
+                                        prior_dmax=float(dmax))).to(device=p.device, dtype=p.dtype)
     state = wide.state_dict()
     for k, v in model.state_dict().items():
         tgt = state[k]

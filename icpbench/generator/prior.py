@@ -32,7 +32,8 @@ from icpbench.mapindex import MapIndex
 
 #: Number of prior channels per point (see the module docstring).
 PRIOR_CHANNELS = 8
-#: Association gate of the prior (metres): the lidar ICP preset's d_max.
+#: Default association gate of the prior (metres): the lidar ICP preset's d_max (a model's
+#: ``GeneratorConfig.prior_dmax`` sets its own, e.g. 0.3 for the objects ICP preset).
 PRIOR_DMAX_M = 5.0
 
 
@@ -71,8 +72,10 @@ def sector_prior(scan: np.ndarray, T_gt: np.ndarray, map_index: MapIndex,
     return out
 
 
-def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIndex]) -> torch.Tensor:
-    """Prior channels (B, N, 8) float32 of a batch of clean scans (B, N, 3), sensor frame."""
+def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIndex],
+                       d_max: float = PRIOR_DMAX_M) -> torch.Tensor:
+    """Prior channels (B, N, 8) float32 of a batch of clean scans (B, N, 3), sensor frame, with
+    association gate ``d_max`` (metres, or normalised units for objects)."""
     if scans.ndim != 3 or scans.shape[-1] != 3 or T_gt.shape != (scans.shape[0], 4, 4):
         raise InputError(f"need scans (B, N, 3) and T_gt (B, 4, 4), got {tuple(scans.shape)} "
                          f"and {tuple(T_gt.shape)}")
@@ -80,4 +83,5 @@ def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIn
         raise InputError(f"need one map per scan, got {len(maps)} for {scans.shape[0]} scans")
     s = scans.detach().to("cpu", torch.float64).numpy()
     T = T_gt.detach().to("cpu", torch.float64).numpy()
-    return torch.as_tensor(np.stack([sector_prior(s[b], T[b], maps[b]) for b in range(len(maps))]))
+    return torch.as_tensor(np.stack([sector_prior(s[b], T[b], maps[b], d_max)
+                                     for b in range(len(maps))]))
