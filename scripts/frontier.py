@@ -1,0 +1,129 @@
+"""Error versus attack time per scan: the learned attack's place between one-step attacks and PGD.
+
+For each attack configuration (normal, sector, the generator, the generator followed by K = 1, 3, 10
+projected gradient steps, PGD with 5, 10 and 30 steps) runs ``icpbench run`` on the same lidar-sim
+test scans (default: the first 48 of Table 1's test passes) at lambda = 1 and 4 m, target p2plane
+(lidar preset, 100 iterations), into ``OUT/runs/<config>/`` (resumable: re-running the command
+continues where it stopped), then writes
+
+* ``OUT/frontier.csv``: per configuration and budget, the mean translation error over all runs
+  at their final error (``err_all_m``) and over converged runs (``err_conv_m``), the share converged,
+  the mean attack time per scan (``attack_s``, one core) and the mean ratio to PGD-30's error;
+* ``OUT/frontier.png``: error versus attack time per scan (log axis), one panel per budget.
+
+    python scripts/frontier.py --out results/frontier            # ~1-2 h on 2 cores
+    python scripts/frontier.py --samples 4 --out runs/frontier-smoke --only normal,generator
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+#: name -> (attack, [attack params]); the generator's refinement uses the same surrogate as PGD.
+CONFIGS: dict[str, tuple[str, list[str]]] = {
+    "normal": ("normal", []),
+    "sector": ("sector", []),
+    "generator": ("generator", []),
+    "generator+1": ("generator", ["generator.refine_steps=1"]),
+    "generator+3": ("generator", ["generator.refine_steps=3"]),
+    "generator+10": ("generator", ["generator.refine_steps=10"]),
+    "pgd-5": ("pgd", ["pgd.steps=5"]),
+    "pgd-10": ("pgd", ["pgd.steps=10"]),
+    "pgd-30": ("pgd", ["pgd.steps=30"]),
+}
+
+
+def run_config(name: str, out: Path, samples: int, budgets: str, extra: list[str],
+               cli: list[str]) -> Path:
+    """Run (or resume) one configuration into ``out/runs/name``; return that folder."""
+    attack, params = CONFIGS[name]
+    folder = out / "runs" / name
+    cmd = [*cli, "run", "--dataset", "lidar-sim", "--attacks", attack, "--targets", "p2plane",
+           "--budgets", budgets, "--samples", str(samples), "--batch-size", "4",
+           "--out", str(folder)]
+    for p in params:
+        cmd += ["--attack-param", p]
+    cmd += extra
+    print(f"[frontier] {name}: {' '.join(cmd)}", flush=True)
+    subprocess.run(cmd, check=True)
+    return folder
+
+
+def summarise(out: Path, names: list[str]) -> pd.DataFrame:
+    """Per configuration and budget: errors, convergence and attack time per scan."""
+    rows = []
+    for name in names:
+        df = pd.read_csv(out / "runs" / name / "results.csv")
+        df = df[df["status"] != "error"]
+        for lam, g in df.groupby("budget"):
+            conv = g[g["converged"].astype(bool)]
+            rows.append({"config": name, "budget_m": float(lam), "n": len(g),
+                         "err_all_m": g["trans_err_xy"].mean(),
+                         "err_conv_m": conv["trans_err_xy"].mean(),
+                         "converged": len(conv) / max(len(g), 1),
+                         "attack_s": g["attack_time_s"].mean(),
+                         "disp_max_m": g["disp_max"].max()})
+    res = pd.DataFrame(rows)
+    ref = res[res["config"] == "pgd-30"].set_index("budget_m")["err_all_m"]
+    res["vs_pgd30"] = [r.err_all_m / ref.get(r.budget_m, float("nan")) for r in res.itertuples()]
+    return res
+
+
+def plot(res: pd.DataFrame, path: Path) -> None:
+    """Error versus attack time per scan, one panel per budget."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from icpbench.plotting import pyplot, save
+
+    plt = pyplot()
+    budgets = sorted(res["budget_m"].unique())
+    fig, axes = plt.subplots(1, len(budgets), figsize=(6 * len(budgets), 4.5), squeeze=False)
+    for ax, lam in zip(axes[0], budgets, strict=True):
+        sub = res[res["budget_m"] == lam]
+        for fam, style in (("generator", "o-"), ("pgd", "s--")):
+            f = sub[sub["config"].str.startswith(fam)].sort_values("attack_s")
+            ax.plot(f["attack_s"], f["err_all_m"], style, label=fam)
+        for r in sub.itertuples():
+            ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
+                        textcoords="offset points")
+            if r.config in ("normal", "sector"):
+                ax.plot([r.attack_s], [r.err_all_m], "^", label=r.config)
+        ax.set_xscale("log")
+        ax.set_xlabel("attack time per scan [s] (one CPU core)")
+        ax.set_ylabel("mean translation error [m]")
+        ax.set_title(f"λ = {lam:g} m")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    save(fig, path)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default="results/frontier")
+    ap.add_argument("--samples", type=int, default=48)
+    ap.add_argument("--budgets", default="1,4")
+    ap.add_argument("--only", default=",".join(CONFIGS), help="comma-separated configurations")
+    ap.add_argument("--run-arg", action="append", default=[],
+                    help="extra argument passed to every `icpbench run` (repeatable)")
+    ap.add_argument("--cli", default="icpbench",
+                    help="command that runs the icpbench CLI (default: icpbench)")
+    args = ap.parse_args()
+    names = [n for n in args.only.split(",") if n]
+    unknown = [n for n in names if n not in CONFIGS]
+    if unknown:
+        sys.exit(f"error: unknown configuration(s) {unknown}; valid: {', '.join(CONFIGS)}")
+    out = Path(args.out)
+    for n in names:
+        run_config(n, out, args.samples, args.budgets, args.run_arg, args.cli.split())
+    res = summarise(out, names)
+    res.to_csv(out / "frontier.csv", index=False, float_format="%.4g")
+    plot(res, out / "frontier.png")
+    print(res.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+
+
+if __name__ == "__main__":
+    main()
