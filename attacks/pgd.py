@@ -7,10 +7,17 @@ loss, eq. 3, same weight presets); after every step each point's displacement is
 Euclidean lambda-ball, so the budget holds exactly (no soft bound). Random start inside the ball; the
 per-point ascent direction is the normalised gradient of that point; the best iterate per scan is
 returned. Slow and strong: it shows how close the generator gets and at what cost.
+
+Cost control (docs/performance.md): ``schedule="cosine"`` decays the step from ``step_size`` to
+``final_step_size`` (fractions of lambda) over the steps, so large steps come first; ``patience=P``
+stops a scan once its best objective has not grown by more than 0.1% of lambda for P steps (a
+stopped scan leaves the batch: the surrogate runs on the others only). ``schedule="constant"``,
+``patience=None`` is the original oracle (30 steps of 0.1 lambda).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 import torch
@@ -35,6 +42,14 @@ class PGDAttack(Attack):
             with 25); the tolerance is kept, so converged samples stop early.
         random_start: start from a uniform random point of each ball (else from the clean scan).
         restarts: independent random starts; the best result per scan is kept.
+        schedule: ``"constant"`` (every step ``step_size``) or ``"cosine"`` (from ``step_size``
+            down to ``final_step_size`` on a half cosine over ``steps``).
+        final_step_size: last step of the cosine schedule, as a fraction of the budget.
+        patience: stop a scan after this many steps without improving its best objective by
+            more than 0.1% of the budget (None: always run ``steps``).
+        backprop: gradient of the surrogate ICP: ``"unrolled"`` (through its iterations) or
+            ``"implicit"`` (implicit-function derivative of its final pose, no graph through the
+            iterations: cheaper per step); None keeps the surrogate's own setting.
     """
 
     name: ClassVar[str] = "pgd"
@@ -45,10 +60,13 @@ class PGDAttack(Attack):
 
     def __init__(self, *, strict: bool = False, steps: int = 30, step_size: float = 0.1,
                  weights: str | list[float] = "xy", icp_iterations: int = 25,
-                 random_start: bool = True, restarts: int = 1, **params: Any) -> None:
+                 random_start: bool = True, restarts: int = 1, schedule: str = "constant",
+                 final_step_size: float = 0.02, patience: int | None = None,
+                 backprop: str | None = None, **params: Any) -> None:
         super().__init__(strict=strict, steps=steps, step_size=step_size, weights=weights,
                          icp_iterations=icp_iterations, random_start=random_start,
-                         restarts=restarts, **params)
+                         restarts=restarts, schedule=schedule, final_step_size=final_step_size,
+                         patience=patience, backprop=backprop, **params)
         if steps < 1 or restarts < 1:
             raise InputError("pgd needs steps >= 1 and restarts >= 1")
         if not step_size > 0:
@@ -56,13 +74,42 @@ class PGDAttack(Attack):
         self.steps, self.step_size, self.restarts = int(steps), float(step_size), int(restarts)
         self.random_start, self.icp_iterations = bool(random_start), int(icp_iterations)
         self.w = weight_vector(weights)
+        if schedule not in ("constant", "cosine"):
+            raise InputError(f"pgd schedule must be 'constant' or 'cosine', got {schedule!r}")
+        if not final_step_size > 0:
+            raise InputError(f"pgd final_step_size must be > 0, got {final_step_size}")
+        if patience is not None and int(patience) < 1:
+            raise InputError(f"pgd patience must be >= 1 or None, got {patience}")
+        self.schedule, self.final_step_size = schedule, float(final_step_size)
+        self.patience = None if patience is None else int(patience)
+        if backprop not in (None, "unrolled", "implicit"):
+            raise InputError(f"pgd backprop must be 'unrolled', 'implicit' or None, got {backprop!r}")
+        self.backprop = backprop
+
+    def step_sizes(self, budget_m: float) -> list[float]:
+        """Step length (metres) of each of the ``steps`` ascent steps."""
+        a0, a1, n = self.step_size * budget_m, self.final_step_size * budget_m, self.steps
+        if self.schedule == "constant" or n == 1:
+            return [a0] * n
+        return [a1 + 0.5 * (a0 - a1) * (1.0 + math.cos(math.pi * k / (n - 1))) for k in range(n)]
 
     def _surrogate(self, surrogate: Target) -> Target:
-        return surrogate.with_max_iterations(self.icp_iterations)
+        icp = surrogate.with_max_iterations(self.icp_iterations)
+        cfg = getattr(icp, "config", None)
+        if self.backprop is None or cfg is None or cfg.backprop == self.backprop:
+            return icp
+        return type(icp)(cfg.with_(backprop=self.backprop))
 
-    def _objective(self, icp: Target, batch: Batch, adv: torch.Tensor) -> torch.Tensor:
-        reg = icp.register(adv, batch.maps, batch.T_init)
-        return weighted_pose_error(pose_error(reg.T, batch.T_gt.to(adv.dtype)), self.w)
+    def _objective(self, icp: Target, batch: Batch, adv: torch.Tensor,
+                   idx: torch.Tensor | None = None) -> torch.Tensor:
+        """Surrogate objective (len(idx),) of adversarial scans adv (len(idx), N, 3) of the
+        batch's samples ``idx`` (default: all)."""
+        if idx is None:
+            reg = icp.register(adv, batch.maps, batch.T_init)
+            return weighted_pose_error(pose_error(reg.T, batch.T_gt.to(adv.dtype)), self.w)
+        maps = [batch.maps[int(i)] for i in idx]
+        reg = icp.register(adv, maps, batch.T_init[idx])
+        return weighted_pose_error(pose_error(reg.T, batch.T_gt[idx].to(adv.dtype)), self.w)
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate, generator) -> torch.Tensor:
         icp = self._surrogate(surrogate)
@@ -85,26 +132,41 @@ class PGDAttack(Attack):
                 budget_m: float, best: torch.Tensor, best_val: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """``self.steps`` projected normalised-gradient steps from ``adv`` (B, N, 3) inside the
-        budget balls around ``clean``; returns the best iterate per scan seen so far (including
-        ``best``/``best_val`` given, and the final iterate) and its objective (B,)."""
-        alpha = self.step_size * budget_m
-        for _ in range(self.steps):
-            adv = adv.detach().requires_grad_(True)
-            val = self._objective(icp, batch, adv)
-            (g,) = torch.autograd.grad(val.sum(), adv)
+        budget balls around ``clean`` (step lengths :meth:`step_sizes`; a scan stops early after
+        ``patience`` steps without progress); returns the best iterate per scan seen so far
+        (including ``best``/``best_val`` given, and the final iterate of scans that ran every
+        step) and its objective (B,)."""
+        B = adv.shape[0]
+        adv, best, best_val = adv.detach().clone(), best.clone(), best_val.clone()
+        live = torch.ones(B, dtype=torch.bool)
+        stale = torch.zeros(B, dtype=torch.long)
+        min_gain = 1e-3 * budget_m
+        for alpha in self.step_sizes(budget_m):
+            idx = torch.nonzero(live)[:, 0]
+            if idx.numel() == 0:
+                break
+            x = adv[idx].requires_grad_(True)
+            val = self._objective(icp, batch, x, None if idx.numel() == B else idx)
+            (g,) = torch.autograd.grad(val.sum(), x)
             with torch.no_grad():
-                better = val > best_val
-                best = torch.where(better[:, None, None], adv, best)
-                best_val = torch.where(better, val, best_val)
+                prev = best_val[idx]
+                better = val > prev
+                best[idx] = torch.where(better[:, None, None], x, best[idx])
+                best_val[idx] = torch.where(better, val, prev)
+                stale[idx] = torch.where(val > prev + min_gain, 0, stale[idx] + 1)
                 g = torch.nan_to_num(g)
                 gn = torch.linalg.norm(g, dim=-1, keepdim=True)
-                adv = adv + alpha * g / torch.clamp(gn, min=1e-12)
-                adv = project_to_ball(clean, adv, budget_m)
-        with torch.no_grad():
-            val = self._objective(icp, batch, adv)
-            better = val > best_val
-            best = torch.where(better[:, None, None], adv, best)
-            best_val = torch.where(better, val, best_val)
+                step = x + alpha * g / torch.clamp(gn, min=1e-12)
+                adv[idx] = project_to_ball(clean[idx], step, budget_m)
+                if self.patience is not None:
+                    live[idx] = stale[idx] < self.patience
+        idx = torch.nonzero(live)[:, 0]
+        if idx.numel():
+            with torch.no_grad():
+                val = self._objective(icp, batch, adv[idx], None if idx.numel() == B else idx)
+                better = val > best_val[idx]
+                best[idx] = torch.where(better[:, None, None], adv[idx], best[idx])
+                best_val[idx] = torch.where(better, val, best_val[idx])
         return best, best_val
 
     def refine(self, batch: Batch, start: torch.Tensor, budget_m: float, *,

@@ -15,16 +15,20 @@ evaluation, outside the timed loop). Throughput is scans per second of the epoch
 * ``+retain``: the same with glibc told to keep freed memory (``MALLOC_MMAP_THRESHOLD_`` and
   ``MALLOC_TRIM_THRESHOLD_``, what :func:`icpbench.allocator.retain_freed_memory` sets).
 
-Each is printed as seconds per training scan divided by the fixed reference (``reference.py``:
-one 30-iteration Open3D point-to-plane ICP of the first training scan against its map, measured in
-the same run); ``extra_info`` holds scans per second.
+Each is printed as wall seconds per training scan divided by the fixed reference (``reference.py``:
+one 30-iteration Open3D point-to-plane ICP of the first training scan against its map, wall-time
+median, measured in the same run); ``extra_info`` and the summary hold scans per second. Wall
+time, because two processes are faster only in wall time: on a loaded machine these ratios move
+with the load more than the CPU-time ratios of the other benchmarks.
 """
 
 from __future__ import annotations
 
 import os
+import statistics
 import subprocess
 import sys
+import time
 
 import pytest
 from reference import open3d_icp
@@ -54,12 +58,18 @@ def _record(benchmark, ratios, phase: str, per_scan_s: float) -> None:
 
 def test_open3d_reference(benchmark, ratios):
     sample = registry.datasets.get("lidar-sim")(seed=0, split="train")[0]
-    out = benchmark.pedantic(open3d_icp(sample), rounds=7, iterations=1, warmup_rounds=1)
+    run = open3d_icp(sample)
+    out = benchmark.pedantic(run, rounds=7, iterations=1, warmup_rounds=1)
     assert out.fitness > 0.5
-    med = _median(benchmark)
-    if med is not None:
-        _REF["open3d"] = med
-        _record(benchmark, ratios, "open3d-icp-30", med)
+    # training throughput is wall time (2 processes are faster only in wall time), so the
+    # reference of this file is the wall-time median, whatever --benchmark-timer says
+    walls = []
+    for _ in range(7):
+        t0 = time.perf_counter()
+        run()
+        walls.append(time.perf_counter() - t0)
+    _REF["open3d"] = statistics.median(walls)
+    _record(benchmark, ratios, "open3d-icp-30", _REF["open3d"])
 
 
 def _train(tmp_path, nproc: int, retain: bool) -> dict:
