@@ -17,9 +17,9 @@ from typing import Any, ClassVar, final
 
 import torch
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
+from icpbench.core.types import Batch
 from icpbench.targets.base import Target
-from icpbench.types import Batch
 
 STAT_COLUMNS = ("disp_max", "disp_mean", "disp_p95", "frac_over_budget")
 
@@ -183,7 +183,7 @@ class Attack(ABC):
         ``__init__`` (``**params`` is not a setting: it only carries a subclass's settings to this
         base class) except ``strict``, which is the run's ``--strict``. Unknown settings are
         refused and values are coerced to these types."""
-        from icpbench.registry import keyword_params
+        from icpbench.core.registry import keyword_params
 
         return keyword_params(cls.__init__, skip=("strict",))
 

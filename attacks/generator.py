@@ -23,9 +23,9 @@ from typing import Any, ClassVar
 import torch
 
 from icpbench.attacks.base import Attack, project_to_ball
-from icpbench.errors import CheckpointError, InputError
+from icpbench.core.errors import CheckpointError, InputError
+from icpbench.core.types import Batch
 from icpbench.targets.base import Target
-from icpbench.types import Batch
 
 
 def shipped_checkpoint_dir(dataset: str) -> Path:
@@ -102,7 +102,7 @@ class GeneratorAttack(Attack):
         """SHA-256 (first 16 hex digits) of the weights and JSON of the checkpoint of each budget
         (keyed ``"<lambda>"``; ``"none"`` where no checkpoint resolves), so that resuming a run after a
         checkpoint changed is refused."""
-        from icpbench.generator.checkpoint import config_path
+        from icpbench.learning.checkpoint import config_path
 
         out = {}
         for lam in budgets:
@@ -119,7 +119,7 @@ class GeneratorAttack(Attack):
         return out
 
     def _model(self, budget_m: float):
-        from icpbench.generator.checkpoint import load_checkpoint
+        from icpbench.learning.checkpoint import load_checkpoint
 
         path = resolve_checkpoint(self.dataset, budget_m, self.checkpoint)
         if path not in self._loaded:
@@ -141,7 +141,7 @@ class GeneratorAttack(Attack):
                   if model.needs_budget else None)
         prior = None
         if model.needs_prior:  # analytic channels from the map and the true pose (sector model)
-            from icpbench.generator.prior import sector_prior_batch
+            from icpbench.learning.prior import sector_prior_batch
 
             prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps,
                                        model.config.prior_dmax).to(self.device)

@@ -7,7 +7,7 @@ from typing import ClassVar
 import torch
 
 from icpbench.attacks.base import Attack
-from icpbench.types import Batch
+from icpbench.core.types import Batch
 
 
 class NoAttack(Attack):

@@ -26,8 +26,8 @@ import torch
 
 from icpbench.attacks.base import Attack
 from icpbench.attacks.uniform import random_xy_directions
-from icpbench.se3 import transform_points
-from icpbench.types import Batch
+from icpbench.core.se3 import transform_points
+from icpbench.core.types import Batch
 
 MIN_HORIZONTAL = 0.1  # |n_xy| below which a normal counts as vertical
 

@@ -23,12 +23,12 @@ from typing import Any, ClassVar
 import torch
 
 from icpbench.attacks.base import Attack, project_to_ball
-from icpbench.errors import InputError
-from icpbench.losses import weighted_pose_error
-from icpbench.losses import weights as weight_vector
-from icpbench.se3 import pose_error
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import pose_error
+from icpbench.core.types import Batch
+from icpbench.learning.losses import weighted_pose_error
+from icpbench.learning.losses import weights as weight_vector
 from icpbench.targets.base import Target
-from icpbench.types import Batch
 
 
 class PGDAttack(Attack):

@@ -13,7 +13,7 @@ from typing import ClassVar
 import torch
 
 from icpbench.attacks.base import Attack, SampleGenerators
-from icpbench.types import Batch
+from icpbench.core.types import Batch
 
 
 def random_xy_directions(batch: Batch, generator: SampleGenerators) -> torch.Tensor:

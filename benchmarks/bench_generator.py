@@ -32,8 +32,8 @@ import pytest
 import torch
 from reference import open3d_icp  # benchmarks/reference.py (pytest puts benchmarks/ on the path)
 
-from icpbench import registry
-from icpbench.types import Batch
+from icpbench.core import registry
+from icpbench.core.types import Batch
 
 PAPER_V100_S = 1.67
 BUDGET_M = 1.0
@@ -45,7 +45,7 @@ _REF: dict[str, float] = {}
 def _problem() -> dict[str, object]:
     if "batch" not in _STATE:
         from icpbench.attacks.generator import resolve_checkpoint
-        from icpbench.generator.checkpoint import load_checkpoint
+        from icpbench.learning.checkpoint import load_checkpoint
         from icpbench.targets.p2plane import PointToPlaneICP
 
         sample = registry.datasets.get("lidar-sim")(seed=0, split="test")[0]

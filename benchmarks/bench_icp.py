@@ -33,9 +33,9 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.synthetic import scene_sample
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 o3d = pytest.importorskip("open3d")
 reg = o3d.pipelines.registration

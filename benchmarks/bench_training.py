@@ -13,7 +13,7 @@ evaluation, outside the timed loop). Throughput is scans per second of the epoch
 * ``train-2proc-ddp``: ``torchrun --nproc_per_node 2 -m icpbench.cli train`` (gloo,
   DistributedDataParallel; each process trains on half of the scans);
 * ``+retain``: the same with glibc told to keep freed memory (``MALLOC_MMAP_THRESHOLD_`` and
-  ``MALLOC_TRIM_THRESHOLD_``, what :func:`icpbench.allocator.retain_freed_memory` sets).
+  ``MALLOC_TRIM_THRESHOLD_``, what :func:`icpbench.learning.allocator.retain_freed_memory` sets).
 
 Each is printed as wall seconds per training scan divided by the fixed reference (``reference.py``:
 one 30-iteration Open3D point-to-plane ICP of the first training scan against its map, wall-time
@@ -33,8 +33,8 @@ import time
 import pytest
 from reference import open3d_icp
 
-from icpbench import registry
-from icpbench.generator.checkpoint import read_checkpoint_meta
+from icpbench.core import registry
+from icpbench.learning.checkpoint import read_checkpoint_meta
 
 SCANS = 12
 CASE = "quick-lidar training"
@@ -81,7 +81,7 @@ def _train(tmp_path, nproc: int, retain: bool) -> dict:
     if nproc > 1:
         args = ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(nproc), *args]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    if retain:  # the environment form of icpbench.allocator.retain_freed_memory()
+    if retain:  # the environment form of icpbench.learning.allocator.retain_freed_memory()
         env.update(MALLOC_MMAP_THRESHOLD_=str(2**31 - 1), MALLOC_TRIM_THRESHOLD_=str(2**31 - 1))
     subprocess.run([sys.executable, *args], check=True, env=env, capture_output=True)
     card = read_checkpoint_meta(out / "generator.pt")[1]["card"]

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import open3d as o3d
 
-from icpbench.types import Sample
+from icpbench.core.types import Sample
 
 ITERS = 30
 THREADS = 1

@@ -11,7 +11,7 @@ try:
 except PackageNotFoundError:  # running from a source tree that was not installed
     __version__ = "0.0.0+unknown"
 
-from icpbench.errors import IcpbenchError, InputError  # noqa: E402
-from icpbench.types import Batch, Registration, Sample  # noqa: E402
+from icpbench.core.errors import IcpbenchError, InputError  # noqa: E402
+from icpbench.core.types import Batch, Registration, Sample  # noqa: E402
 
 __all__ = ["Batch", "IcpbenchError", "InputError", "Registration", "Sample", "__version__"]

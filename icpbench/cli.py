@@ -14,7 +14,7 @@ from typing import Annotated
 import typer
 
 from icpbench import __version__
-from icpbench.errors import IcpbenchError
+from icpbench.core.errors import IcpbenchError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Worst-case error of lidar ICP localisation under corrupted scans.")
@@ -129,7 +129,7 @@ def _interrupted(out: Path | None) -> None:
 
 def _check_reference(reference: str, attacks: list[str] | set[str]) -> None:
     """``--reference`` must name a registered attack or one in the results."""
-    from icpbench import registry
+    from icpbench.core import registry
 
     if reference not in attacks and reference not in registry.attacks.names():
         raise typer.BadParameter(f"--reference {reference!r} is not an attack; valid: "
@@ -141,7 +141,7 @@ def list_plugins() -> None:
     """List every registered attack, target and dataset, and whether it can load."""
     from tabulate import tabulate
 
-    from icpbench import registry
+    from icpbench.core import registry
 
     for reg in (registry.attacks, registry.targets, registry.datasets):
         rows = [(i.name, "yes" if i.available else "NO", i.description if i.available else i.reason)
@@ -202,13 +202,13 @@ def run(
 ) -> None:
     """Run the grid samples x attacks x targets x budgets x seeds and print Table 1.
 
-    Defaults are those of icpbench.runner.RunConfig; --config FILE replaces them, options given
+    Defaults are those of icpbench.harness.runner.RunConfig; --config FILE replaces them, options given
     on the command line override both.
     """
-    from icpbench.report import render, table1, transfer_frame
-    from icpbench.results import load_results
-    from icpbench.runner import RunConfig
-    from icpbench.runner import run as run_grid
+    from icpbench.harness.report import render, table1, transfer_frame
+    from icpbench.harness.results import load_results
+    from icpbench.harness.runner import RunConfig
+    from icpbench.harness.runner import run as run_grid
 
     out_dir: Path | None = None
     try:
@@ -269,14 +269,14 @@ def table(
     = None,
 ) -> None:
     """Regenerate Table 1 (or the transfer table) from stored results."""
-    from icpbench.report import (
+    from icpbench.harness.report import (
         check_table_destination,
         render,
         table1,
         transfer_frame,
         transfer_vs_baseline,
     )
-    from icpbench.results import load_results
+    from icpbench.harness.results import load_results
 
     try:
         if format not in ("md", "latex", "csv"):
@@ -311,7 +311,7 @@ def show_dataset(
     dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
 ) -> None:
     """Write a top view of the dataset (route by stretch type) and a scan overlaid on its map."""
-    from icpbench.dataset_figures import show_dataset as show
+    from icpbench.analysis.dataset_figures import show_dataset as show
 
     try:
         paths = show(name, out, sample_index=sample, **_flat(dataset_param, "--dataset-param"))
@@ -340,10 +340,10 @@ def danger_map(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
-    from icpbench.danger_map import write_maps
-    from icpbench.results import load_results
-    from icpbench.runner import RunConfig
-    from icpbench.runner import run as run_grid
+    from icpbench.analysis.danger_map import write_maps
+    from icpbench.harness.results import load_results
+    from icpbench.harness.runner import RunConfig
+    from icpbench.harness.runner import run as run_grid
 
     out_dir: Path | None = None
     try:
@@ -381,8 +381,8 @@ def object_study(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("runs/object-study"),
 ) -> None:
     """Paper figure 4: objects attacked by generators trained with different loss weights."""
-    from icpbench.object_study import figure, study, summary_table
-    from icpbench.report import render
+    from icpbench.analysis.object_study import figure, study, summary_table
+    from icpbench.harness.report import render
 
     try:
         if not budget > 0:
@@ -450,8 +450,8 @@ def train(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
-    from icpbench.training import train as run_training
-    from icpbench.training import train_config
+    from icpbench.learning.training import train as run_training
+    from icpbench.learning.training import train_config
 
     try:
         for flag, v, lo in (("--epochs", epochs, 0), ("--pretrain-epochs", pretrain_epochs, 0),

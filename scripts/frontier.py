@@ -77,7 +77,7 @@ def summarise(out: Path, names: list[str]) -> pd.DataFrame:
 def plot(res: pd.DataFrame, path: Path) -> None:
     """Error versus attack time per scan, one panel per budget."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from icpbench.plotting import pyplot, save
+    from icpbench.analysis.plotting import pyplot, save
 
     plt = pyplot()
     budgets = sorted(res["budget_m"].unique())

@@ -12,7 +12,7 @@ icpbench show-dataset lidar-sim --out "$OUT"
 python - "$OUT" <<'PY'
 import sys
 
-from icpbench.dataset_figures import sensors_figure, towns_figure
+from icpbench.analysis.dataset_figures import sensors_figure, towns_figure
 from icpbench.datasets.lidar_sim import LidarSimDataset
 
 out = sys.argv[1]

@@ -35,10 +35,11 @@ import pandas as pd
 import torch
 from scipy.spatial import cKDTree
 
-from icpbench import registry, sector
-from icpbench.se3 import pose_error_components
+from icpbench.analysis import sector_math as sector
+from icpbench.core import registry
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 
 def field_stats(clean: np.ndarray, adv: np.ndarray, lam: float, normals: np.ndarray,
@@ -139,7 +140,7 @@ def n_sensor_first(s) -> np.ndarray:
 def plot_fields(scan: np.ndarray, fields: dict[str, np.ndarray], budgets: list[float],
                 normals: np.ndarray, path: Path) -> None:
     """Top view (x forward, y left; metres) of each attack's field, coloured by d.n / lambda."""
-    from icpbench.plotting import pyplot, save
+    from icpbench.analysis.plotting import pyplot, save
 
     plt = pyplot()
     names = ["sector", "generator", "pgd"]

@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from icpbench.types import Registration
+from icpbench.core.types import Registration
 
 
 class Target(ABC):
@@ -46,7 +46,7 @@ class Target(ABC):
         ``__init__`` after the preset and, if ``__init__`` takes ``**overrides``, the fields of
         ``ICPConfig`` (the overrides of the preset). Unknown settings are refused and values are
         coerced to these types before the target is built."""
-        from icpbench.registry import accepts_extra, keyword_params
+        from icpbench.core.registry import accepts_extra, keyword_params
 
         params = keyword_params(cls.__init__)
         params.pop(next(iter(params), ""), None)  # the preset (first parameter)
@@ -91,7 +91,7 @@ class Target(ABC):
             T_init: (B, 4, 4) initial scan->map transforms.
 
         Returns:
-            :class:`~icpbench.types.Registration` with T (B, 4, 4) and per-sample health.
+            :class:`~icpbench.core.types.Registration` with T (B, 4, 4) and per-sample health.
         """
 
     def settings(self) -> dict[str, Any]:

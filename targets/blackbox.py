@@ -3,7 +3,7 @@
 :class:`BlackBoxTarget` implements :meth:`~icpbench.targets.base.Target.register` once for every
 library that registers one scan at a time: it checks the batch, drops non-finite scan points,
 calls the subclass's :meth:`BlackBoxTarget._register_one` per sample and assembles the
-:class:`~icpbench.types.Registration`, with the same health statuses as our differentiable ICP
+:class:`~icpbench.core.types.Registration`, with the same health statuses as our differentiable ICP
 (:mod:`icpbench.targets.icp`).
 
 This module imports no optional library (only NumPy, SciPy, torch and icpbench), so a missing
@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
+from icpbench.core.types import Registration
 from icpbench.targets.base import Target
 from icpbench.targets.icp import ICPConfig, icp_config
-from icpbench.types import Registration
 
 _ICP_FIELDS = frozenset(f.name for f in fields(ICPConfig))
 

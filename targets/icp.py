@@ -27,10 +27,10 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from icpbench.errors import InputError
-from icpbench.mapindex import MapIndex
-from icpbench.se3 import hat, se3_exp
-from icpbench.types import Registration
+from icpbench.core.errors import InputError
+from icpbench.core.mapindex import MapIndex
+from icpbench.core.se3 import hat, se3_exp
+from icpbench.core.types import Registration
 
 Mode = Literal["plane", "point"]
 Backprop = Literal["unrolled", "implicit"]

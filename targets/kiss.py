@@ -44,7 +44,8 @@ KISS setting             default derived from the preset
 =======================  ===============================================================================
 
 Measured with the defaults (1 thread, this repo's 2-core machine): the ``lidar`` preset on
-:func:`icpbench.synthetic.scene_sample` (2,000-point scans, 20,000-point map, 0.2-0.3 m / 3-6 deg
+:func:`icpbench.datasets.synthetic_scene.scene_sample` (2,000-point scans, 20,000-point map,
+0.2-0.3 m / 3-6 deg
 initial error) gives 1.7-3 cm translation error in 17-36 iterations (point-to-point bias from the
 map sampling; p2plane: 0.2-0.7 cm); the ``objects`` preset on the ``objects`` test split gives a
 median 0.003 (max 0.01) in 28-76 iterations (p2plane: median 0.003, max 0.006).
@@ -87,7 +88,8 @@ import numpy as np
 from kiss_icp.pybind import kiss_icp_pybind as kp
 from scipy.spatial import cKDTree
 
-from icpbench.errors import InputError, PluginUnavailableError
+from icpbench.core.errors import InputError, PluginUnavailableError
+from icpbench.core.types import validate_cloud
 from icpbench.targets.blackbox import (
     BlackBoxTarget,
     OneResult,
@@ -96,7 +98,6 @@ from icpbench.targets.blackbox import (
     resolve_preset,
 )
 from icpbench.targets.icp import ICPConfig, config_dict
-from icpbench.types import validate_cloud
 
 #: kiss-icp versions whose pybind signatures this module was written and tested against.
 TESTED_VERSIONS = ((1, 2), (1, 4))  # [1.2, 1.4)

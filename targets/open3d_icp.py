@@ -63,7 +63,8 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
+from icpbench.core.types import Registration, validate_cloud
 from icpbench.targets.blackbox import (
     BlackBoxTarget,
     OneResult,
@@ -72,7 +73,6 @@ from icpbench.targets.blackbox import (
     resolve_preset,
 )
 from icpbench.targets.icp import ICPConfig, config_dict
-from icpbench.types import Registration, validate_cloud
 
 _reg = o3d.pipelines.registration
 

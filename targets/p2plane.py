@@ -8,10 +8,10 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from icpbench.mapindex import MapIndex
+from icpbench.core.mapindex import MapIndex
+from icpbench.core.types import Registration
 from icpbench.targets.base import Target
 from icpbench.targets.icp import ICPConfig, Mode, config_dict, icp, icp_config
-from icpbench.types import Registration
 
 
 class PointToPlaneICP(Target):

@@ -36,7 +36,8 @@ small_gicp                       from the preset
 ``cfg.soft_dmax``                not available (rejected)
 ===============================  ========================================================================
 
-Measured with the defaults (GICP, 1 thread): ``lidar`` on :func:`icpbench.synthetic.scene_sample`
+Measured with the defaults (GICP, 1 thread): ``lidar`` on
+:func:`icpbench.datasets.synthetic_scene.scene_sample`
 (0.2-0.3 m / 3-6 deg initial error) gives 0.5-2 cm in 4-6 iterations; ``objects`` on the
 ``objects`` test split gives a median 0.006 (p2plane: 0.003; the covariances of 20 neighbours of
 a scan with 0.025 noise are biased) in 3-11 iterations.
@@ -44,7 +45,7 @@ a scan with 0.025 noise are biased) in 3-11 iterations.
 Guards against known failures of small_gicp 1.0.1 (measured; docs/methods.md, "Black-box targets"):
 
 * an **empty map segfaults** the process: :meth:`prepare` rejects maps with fewer than 6 points (and
-  NaN/Inf map points) with :class:`~icpbench.errors.InputError`;
+  NaN/Inf map points) with :class:`~icpbench.core.errors.InputError`;
 * a **single NaN/Inf scan point freezes** the optimiser at ``T_init`` (NaN pairs pass its distance
   rejector, so H is NaN): non-finite scan points are dropped before the call. The status does not
   change because of that; ``inlier_fraction`` is still relative to all N points, so dropped points
@@ -64,10 +65,10 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import small_gicp
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
+from icpbench.core.types import validate_cloud
 from icpbench.targets.blackbox import BlackBoxTarget, OneResult, resolve_preset
 from icpbench.targets.icp import ICPConfig, config_dict
-from icpbench.types import validate_cloud
 
 RegistrationType = Literal["GICP", "PLANE_ICP", "ICP"]
 

@@ -1,11 +1,11 @@
-"""icpbench.allocator: the opt-in glibc setting that keeps freed memory in the process."""
+"""icpbench.learning.allocator: the opt-in glibc setting that keeps freed memory in the process."""
 
 import platform
 
 import pytest
 import torch
 
-from icpbench.allocator import retain_freed_memory
+from icpbench.learning.allocator import retain_freed_memory
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc only")

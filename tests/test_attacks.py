@@ -10,11 +10,11 @@ from icpbench.attacks.none import NoAttack
 from icpbench.attacks.normal import NormalTranslationAttack
 from icpbench.attacks.pgd import PGDAttack
 from icpbench.attacks.uniform import UniformTranslationAttack, random_xy_directions
-from icpbench.errors import InputError
-from icpbench.se3 import pose_error_components
-from icpbench.synthetic import scene_sample
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 
 @pytest.fixture(scope="module")

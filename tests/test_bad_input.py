@@ -13,25 +13,25 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from icpbench import registry
 from icpbench.attacks.base import Attack, validate_budget
 from icpbench.attacks.generator import GeneratorAttack
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.cli import app
+from icpbench.core import registry
+from icpbench.core.errors import CheckpointError, InputError
+from icpbench.core.mapindex import MapIndex
+from icpbench.core.types import Batch, Sample
 from icpbench.datasets.base import Dataset
 from icpbench.datasets.kitti import read_kitti_bin
 from icpbench.datasets.meshes import read_mesh
-from icpbench.errors import CheckpointError, InputError
-from icpbench.generator.checkpoint import load_checkpoint, save_checkpoint
-from icpbench.generator.network import Generator, generator_config
-from icpbench.mapindex import MapIndex
-from icpbench.report import table1
-from icpbench.results import load_results
-from icpbench.runner import RunConfig, run
+from icpbench.harness.report import table1
+from icpbench.harness.results import load_results
+from icpbench.harness.runner import RunConfig, run
+from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
+from icpbench.learning.network import Generator, generator_config
 from icpbench.targets.open3d_icp import Open3DICP
 from icpbench.targets.p2plane import PointToPlaneICP
 from icpbench.targets.p2point import PointToPointICP
-from icpbench.types import Batch, Sample
 
 torch.set_num_threads(1)
 RNG = np.random.default_rng(0)

@@ -1,6 +1,6 @@
 """Black-box ICP targets (Open3D, KISS-ICP, small_gicp): accuracy, batching, input guards, presets.
 
-Lidar problem: ``icpbench.synthetic.scene_sample`` (ground, boxes, poles; 2,000-point scan with
+Lidar problem: ``icpbench.datasets.synthetic_scene.scene_sample`` (ground, boxes, poles; 2,000-point scan with
 2 cm noise vs a 20,000-point map), ground truth up to 0.3 m / 5 deg per axis from T_init =
 identity, ``lidar`` preset. Objects problem: the first 8 samples of the ``objects`` test split
 (unit-size objects, 2,048-point scans with 0.025 noise, up to 0.08 / 10 deg), ``objects`` preset.
@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench import registry
-from icpbench.errors import InputError, PluginUnavailableError
-from icpbench.runner import build_target
-from icpbench.se3 import pose_error_components
-from icpbench.synthetic import scene_sample
+from icpbench.core import registry
+from icpbench.core.errors import InputError, PluginUnavailableError
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
+from icpbench.harness.runner import build_target
 from icpbench.targets.icp import PRESETS
-from icpbench.types import Batch
 
 torch.set_num_threads(1)
 

@@ -59,9 +59,9 @@ def test_run_then_table_formats(tmp_path):
 
 def test_run_defaults_are_runconfigs(monkeypatch, tmp_path):
     """`icpbench run` with no options builds exactly RunConfig() (one source of defaults)."""
-    import icpbench.runner as runner
-    from icpbench.errors import InputError
-    from icpbench.runner import RunConfig
+    import icpbench.harness.runner as runner
+    from icpbench.core.errors import InputError
+    from icpbench.harness.runner import RunConfig
 
     seen = []
 
@@ -85,7 +85,7 @@ SMALL = ["--dataset", "synthetic", "--attacks", "none,uniform,normal", "--target
 
 
 def _rows(path):
-    from icpbench.results import load_results
+    from icpbench.harness.results import load_results
 
     df = load_results(path)
     keep = [c for c in df.columns if c not in ("attack_time_s", "icp_time_s")]

@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from icpbench.danger_map import auc, location_errors, pass_rank_correlation, write_maps
-from icpbench.errors import InputError
+from icpbench.analysis.danger_map import auc, location_errors, pass_rank_correlation, write_maps
+from icpbench.core.errors import InputError
 
 
 def _results(n_loc=12):

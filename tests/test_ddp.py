@@ -1,4 +1,4 @@
-"""Data-parallel training (icpbench.distributed): sharding, torchrun's variables, and a real
+"""Data-parallel training (icpbench.learning.distributed): sharding, torchrun's variables, and a real
 ``torchrun --nproc_per_node 2`` run of ``icpbench train`` in a CPU gloo process group.
 
 The torchrun run trains with 2 ranks x batch 1 on samples {0, 1}; DDP averages the two gradients,
@@ -15,9 +15,9 @@ import sys
 import pytest
 import torch
 
-from icpbench import distributed as ddp
-from icpbench.errors import InputError
-from icpbench.training import train, train_config
+from icpbench.core.errors import InputError
+from icpbench.learning import distributed as ddp
+from icpbench.learning.training import train, train_config
 
 torch.set_num_threads(1)
 

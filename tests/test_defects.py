@@ -15,10 +15,10 @@ import torch
 from typer.testing import CliRunner
 
 from icpbench.cli import app
-from icpbench.errors import CheckpointError, InputError
-from icpbench.report import table1, table1_counts
-from icpbench.results import RESULTS_FILE, load_results, read_manifest
-from icpbench.runner import RunConfig, run
+from icpbench.core.errors import CheckpointError, InputError
+from icpbench.harness.report import table1, table1_counts
+from icpbench.harness.results import RESULTS_FILE, load_results, read_manifest
+from icpbench.harness.runner import RunConfig, run
 
 torch.set_num_threads(1)
 cli = CliRunner()
@@ -67,8 +67,8 @@ def test_table_refuses_to_overwrite_a_results_folders_own_files(small_run, tmp_p
 
 # -- 2. `train --out` over a checkpoint it did not write ---------------------------------------------
 def test_train_refuses_to_overwrite_a_checkpoint_it_did_not_write(tmp_path):
-    from icpbench.generator.checkpoint import save_checkpoint
-    from icpbench.generator.network import Generator, generator_config
+    from icpbench.learning.checkpoint import save_checkpoint
+    from icpbench.learning.network import Generator, generator_config
 
     save_checkpoint(Generator(generator_config("objects")), tmp_path / "generator.pt")
     before = (tmp_path / "generator.pt").read_bytes()
@@ -80,7 +80,7 @@ def test_train_refuses_to_overwrite_a_checkpoint_it_did_not_write(tmp_path):
 
 # -- 3. two runs on one folder; duplicated rows --------------------------------------------------
 def test_a_second_run_on_a_locked_folder_is_refused(tmp_path):
-    from icpbench.results import lock_results_dir
+    from icpbench.harness.results import lock_results_dir
 
     cfg = RunConfig(**SYN, attacks=["none"], budgets=[0.5], samples=1)
     tmp_path.mkdir(exist_ok=True)
@@ -185,8 +185,8 @@ def test_non_numeric_kitti_setting_is_a_clean_error(kitti_root, tmp_path):
 
 # -- 8. an edited generator JSON -----------------------------------------------------------------
 def test_an_edited_generator_json_is_refused(tmp_path):
-    from icpbench.generator.checkpoint import CONFIG_HASH_KEY, load_checkpoint, save_checkpoint
-    from icpbench.generator.network import Generator, generator_config
+    from icpbench.learning.checkpoint import CONFIG_HASH_KEY, load_checkpoint, save_checkpoint
+    from icpbench.learning.network import Generator, generator_config
 
     path = save_checkpoint(Generator(generator_config("objects")), tmp_path / "g.pt")
     load_checkpoint(path)
@@ -267,9 +267,9 @@ def test_show_dataset_sample_out_of_range(index, tmp_path):
 def test_truncated_train_state_is_named(tmp_path):
     from dataclasses import asdict
 
-    from icpbench.generator.checkpoint import save_checkpoint
-    from icpbench.generator.network import Generator, generator_config
-    from icpbench.training import train, train_config
+    from icpbench.learning.checkpoint import save_checkpoint
+    from icpbench.learning.network import Generator, generator_config
+    from icpbench.learning.training import train, train_config
 
     cfg = train_config("quick-objects", epochs=1, pretrain_epochs=0, train_samples=1,
                        eval_samples=1, dataset_params={"n_samples": 2})
@@ -325,7 +325,7 @@ def test_config_mismatch_names_the_setting(tmp_path):
 
 
 def test_ctrl_c_says_that_the_same_command_resumes(tmp_path, monkeypatch):
-    import icpbench.runner as runner
+    import icpbench.harness.runner as runner
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt

@@ -5,11 +5,11 @@ import pandas as pd
 import pytest
 from matplotlib.figure import Figure
 
-from icpbench.danger_map import plot_comparison, plot_route
+from icpbench.analysis.danger_map import plot_comparison, plot_route
+from icpbench.analysis.object_study import figure as object_figure
+from icpbench.analysis.plotting import axes_without_units, pyplot
+from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset
-from icpbench.object_study import figure as object_figure
-from icpbench.plotting import axes_without_units, pyplot
-from icpbench.types import Sample
 
 
 @pytest.fixture
@@ -89,7 +89,7 @@ class _Route(Dataset):
 
 
 def test_dataset_pictures_label_their_axes(saved, tmp_path):
-    from icpbench.dataset_figures import show_dataset
+    from icpbench.analysis.dataset_figures import show_dataset
 
     paths = show_dataset(_Route(), tmp_path)
     assert [p.exists() for p in paths] == [True, True]

@@ -1,4 +1,4 @@
-"""The generator's no-autograd fast path (icpbench.generator.fast) equals the autograd path."""
+"""The generator's no-autograd fast path (icpbench.learning.fast) equals the autograd path."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.generator import fast
-from icpbench.generator.network import Generator, generator_config
+from icpbench.learning import fast
+from icpbench.learning.network import Generator, generator_config
 
 torch.set_num_threads(1)
 
@@ -62,10 +62,10 @@ def test_fast_path_equals_the_autograd_path(overrides):
 def test_shipped_lidar_generator_output_is_unchanged():
     """The shipped lidar-sim model on a lidar-sim test scan: the fast path agrees with the autograd
     path within float32 rounding (measured 1e-5 m at displacements up to 4 m)."""
-    from icpbench import registry
     from icpbench.attacks.generator import resolve_checkpoint
-    from icpbench.generator.checkpoint import load_checkpoint
-    from icpbench.types import Batch
+    from icpbench.core import registry
+    from icpbench.core.types import Batch
+    from icpbench.learning.checkpoint import load_checkpoint
 
     model = load_checkpoint(resolve_checkpoint("lidar-sim", 1.0)).model.eval()
     batch = Batch.from_samples([registry.datasets.get("lidar-sim")(seed=0, split="test")[0]])

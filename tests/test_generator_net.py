@@ -1,4 +1,4 @@
-"""Generator network, index precompute and checkpoint I/O (icpbench.generator)."""
+"""Generator network, index precompute and checkpoint I/O (icpbench.learning)."""
 
 from __future__ import annotations
 
@@ -9,16 +9,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from icpbench.errors import CheckpointError, InputError
-from icpbench.generator.checkpoint import load_checkpoint, read_checkpoint_meta, save_checkpoint
-from icpbench.generator.geometry import (
+from icpbench.core.errors import CheckpointError, InputError
+from icpbench.learning.checkpoint import load_checkpoint, read_checkpoint_meta, save_checkpoint
+from icpbench.learning.geometry import (
     Geometry,
     GeometryConfig,
     compute_geometry,
     compute_geometry_batch,
     fps_start_index,
 )
-from icpbench.generator.network import (
+from icpbench.learning.network import (
     Generator,
     GeneratorConfig,
     add_global_feature,
@@ -342,10 +342,10 @@ def test_config_json_round_trip_and_validation():
 
 def test_a_few_steps_increase_the_icp_pose_error():
     """Gradient ascent on the p2plane ICP translation error through the generator works."""
-    from icpbench.se3 import pose_error_components
-    from icpbench.synthetic import scene_sample
+    from icpbench.core.se3 import pose_error_components
+    from icpbench.core.types import Batch, Sample
+    from icpbench.datasets.synthetic_scene import scene_sample
     from icpbench.targets.p2plane import PointToPlaneICP
-    from icpbench.types import Batch, Sample
 
     s = scene_sample(n_scan=N, n_map=6000, seed=0)
     f = 1 / 40  # the 80 m synthetic scene shrunk to object scale for the objects preset

@@ -1,4 +1,4 @@
-"""The analytic prior channels of the generator (icpbench.generator.prior) and prior models."""
+"""The analytic prior channels of the generator (icpbench.learning.prior) and prior models."""
 
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.errors import InputError
-from icpbench.generator.network import Generator, add_prior, generator_config
-from icpbench.generator.prior import PRIOR_CHANNELS, sector_prior, sector_prior_batch
-from icpbench.synthetic import scene_sample
-from icpbench.types import Batch
+from icpbench.core.errors import InputError
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
+from icpbench.learning.network import Generator, add_prior, generator_config
+from icpbench.learning.prior import PRIOR_CHANNELS, sector_prior, sector_prior_batch
 
 
 @pytest.fixture(scope="module")

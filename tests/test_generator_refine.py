@@ -6,13 +6,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from icpbench import registry
 from icpbench.attacks.generator import GeneratorAttack, GeneratorRefineAttack
-from icpbench.errors import InputError
-from icpbench.losses import weighted_pose_error, weights
-from icpbench.se3 import pose_error
+from icpbench.core import registry
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import pose_error
+from icpbench.core.types import Batch
+from icpbench.learning.losses import weighted_pose_error, weights
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 LAM = 0.05
 

@@ -4,9 +4,9 @@ displacement audit equals the budget where it should."""
 
 import pytest
 
-from icpbench.report import table1_frame
-from icpbench.results import load_results
-from icpbench.runner import RunConfig, run
+from icpbench.harness.report import table1_frame
+from icpbench.harness.results import load_results
+from icpbench.harness.runner import RunConfig, run
 
 
 @pytest.fixture(scope="module")

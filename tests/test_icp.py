@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.errors import InputError
-from icpbench.se3 import pose_error_components
-from icpbench.synthetic import scene_sample
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
 from icpbench.targets.p2plane import PointToPlaneICP
 from icpbench.targets.p2point import PointToPointICP
-from icpbench.types import Batch
 
 SCENE_SCALE_M = 80.0  # side of the synthetic scene's ground square
 
@@ -179,7 +179,7 @@ def test_degenerate_scan_is_flagged_not_crashing():
 def test_correspondence_cache_returns_the_nearest_neighbour_of_every_point():
     """The ICP re-queries only points that moved more than half their d2 - d1 gap; after any
     sequence of small and large moves every point still has its true nearest map point."""
-    from icpbench.mapindex import MapIndex
+    from icpbench.core.mapindex import MapIndex
     from icpbench.targets.icp import _Correspondences
 
     rng = np.random.default_rng(0)

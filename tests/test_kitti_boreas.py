@@ -1,6 +1,6 @@
 """KITTI and Boreas loaders: tiny datasets written in each layout inside the test, read back.
 
-The "world" is the synthetic scene of :mod:`icpbench.synthetic` (ground, boxes, poles, exact
+The "world" is the synthetic scene of :mod:`icpbench.datasets.synthetic_scene` (ground, boxes, poles, exact
 surface samples); each frame is a fresh set of surface samples within 30 m of the sensor,
 written in the sensor frame with the layout's pose conventions.
 """
@@ -13,11 +13,11 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from icpbench.core.errors import InputError
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.boreas import BoreasDataset, pose_from_row
 from icpbench.datasets.kitti import KittiDataset
-from icpbench.errors import InputError
-from icpbench.synthetic import scene_points
+from icpbench.datasets.synthetic_scene import scene_points
 
 torch.set_num_threads(1)
 
@@ -120,9 +120,9 @@ def test_kitti_samples_align_and_exclude_their_own_frame(kitti):
 
 
 def test_kitti_cache_and_icp(kitti, tmp_path):
-    from icpbench.se3 import pose_error_components
+    from icpbench.core.se3 import pose_error_components
+    from icpbench.core.types import Batch
     from icpbench.targets.p2plane import PointToPlaneICP
-    from icpbench.types import Batch
 
     _, _, _, ds = kitti
     a = ds[1]
@@ -165,7 +165,7 @@ def test_kitti_input_errors(kitti, tmp_path):
 
 
 def test_show_dataset_for_a_loaded_dataset(kitti, tmp_path):
-    from icpbench.dataset_figures import show_dataset
+    from icpbench.analysis.dataset_figures import show_dataset
 
     paths = show_dataset(kitti[3], tmp_path)
     assert [p.name for p in paths] == ["kitti_route.png", "kitti_scan_on_submap.png"]

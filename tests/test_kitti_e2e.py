@@ -20,7 +20,7 @@ from icpbench.cli import app
 from icpbench.datasets.kitti import KittiDataset, read_kitti_bin
 from icpbench.datasets.kitti_export import write_kitti_sequence
 from icpbench.datasets.lidar_sim import LidarSimDataset
-from icpbench.generator.checkpoint import load_checkpoint
+from icpbench.learning.checkpoint import load_checkpoint
 
 torch.set_num_threads(1)
 pytestmark = pytest.mark.slow
@@ -51,9 +51,9 @@ def _cli(args: list[str], cache, monkeypatch) -> str:
 
 
 def test_the_files_follow_the_kitti_layout_and_localise(recording):
-    from icpbench.se3 import pose_error_components
+    from icpbench.core.se3 import pose_error_components
+    from icpbench.core.types import Batch
     from icpbench.targets.p2plane import PointToPlaneICP
-    from icpbench.types import Batch
 
     root, cache = recording
     bins = sorted((root / "sequences" / "00" / "velodyne").glob("*.bin"))

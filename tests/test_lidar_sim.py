@@ -13,11 +13,11 @@ import torch
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from icpbench.core.errors import InputError
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.lidar_model import LidarConfig, cast_scan, make_scene
 from icpbench.datasets.lidar_sim import LidarSimDataset
 from icpbench.datasets.town import PLACES, STRETCH_TYPES, make_route, make_town
-from icpbench.errors import InputError
 
 torch.set_num_threads(1)
 
@@ -214,9 +214,9 @@ def test_repeat_passes_differ_from_the_teach_pass(ds):
 def test_clean_localisation_with_p2plane(ds):
     """Paper settings (c = 1 m, d_max = 5 m, 100 iterations): 8 test samples converge with
     centimetre errors."""
-    from icpbench.se3 import pose_error_components
+    from icpbench.core.se3 import pose_error_components
+    from icpbench.core.types import Batch
     from icpbench.targets.p2plane import PointToPlaneICP
-    from icpbench.types import Batch
 
     batch = Batch.from_samples(ds.take(8))
     reg = PointToPlaneICP("lidar").register(batch.scans, batch.maps, batch.T_init)
@@ -227,7 +227,7 @@ def test_clean_localisation_with_p2plane(ds):
 
 
 def test_show_dataset_writes_both_pictures(ds, tmp_path):
-    from icpbench.dataset_figures import show_dataset
+    from icpbench.analysis.dataset_figures import show_dataset
 
     paths = show_dataset(ds, tmp_path)
     assert [p.name for p in paths] == ["lidar-sim_route.png", "lidar-sim_scan_on_submap.png"]
@@ -240,9 +240,9 @@ def test_uniform_attack_shifts_the_estimate_by_lambda(ds):
     """The uniform baseline translates the whole scan by 1 m: ICP follows it (mean error within
     10 % of 1 m), so the dataset has no hidden bias in x-y."""
     from icpbench.attacks.uniform import UniformTranslationAttack
-    from icpbench.se3 import pose_error_components
+    from icpbench.core.se3 import pose_error_components
+    from icpbench.core.types import Batch
     from icpbench.targets.p2plane import PointToPlaneICP
-    from icpbench.types import Batch
 
     batch = Batch.from_samples(ds.take(8))
     adv = UniformTranslationAttack().run(batch, 1.0, generator=0).scans

@@ -9,6 +9,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from icpbench.core.errors import InputError
+from icpbench.core.registry import datasets
 from icpbench.datasets.meshes import (
     MeshFolderDataset,
     ObjectSampling,
@@ -20,8 +22,6 @@ from icpbench.datasets.meshes import (
     sample_surface,
     split_of,
 )
-from icpbench.errors import InputError
-from icpbench.registry import datasets
 
 SMALL = dict(n_map_points=2000, n_scan_points=256)
 

@@ -4,7 +4,7 @@ larger heading errors than the x-only model, and the x-only model larger x error
 from importlib import resources
 from pathlib import Path
 
-from icpbench.object_study import study, summary_table
+from icpbench.analysis.object_study import study, summary_table
 
 CK = Path(str(resources.files("icpbench") / "checkpoints" / "objects"))
 

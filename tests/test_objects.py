@@ -9,12 +9,12 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from icpbench.core.errors import InputError
+from icpbench.core.registry import datasets
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
 from icpbench.datasets.objects import CATEGORIES, ObjectsDataset, build_object
-from icpbench.errors import InputError
-from icpbench.registry import datasets
-from icpbench.se3 import pose_error_components
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 torch.set_num_threads(1)
 

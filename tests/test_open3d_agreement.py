@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.se3 import pose_error_components
-from icpbench.synthetic import scene_sample
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 o3d = pytest.importorskip("open3d")
 from icpbench.targets.open3d_icp import Open3DICP  # noqa: E402

@@ -10,12 +10,12 @@ import torch
 
 from icpbench.attacks.base import SampleGenerators, project_to_ball
 from icpbench.attacks.pgd import PGDAttack
-from icpbench.errors import InputError
-from icpbench.losses import weighted_pose_error
-from icpbench.se3 import pose_error
-from icpbench.synthetic import scene_sample
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import pose_error
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
+from icpbench.learning.losses import weighted_pose_error
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 
 @pytest.fixture(scope="module")

@@ -8,14 +8,14 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from icpbench import registry
 from icpbench.attacks.base import Attack
 from icpbench.attacks.none import NoAttack
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.cli import app
+from icpbench.core import registry
+from icpbench.core.errors import InputError
 from icpbench.datasets.base import Dataset
-from icpbench.errors import InputError
-from icpbench.runner import RunConfig
+from icpbench.harness.runner import RunConfig
 from icpbench.targets.base import Target
 from icpbench.targets.p2plane import PointToPlaneICP
 
@@ -155,8 +155,8 @@ def test_pgd_uses_the_surrogate_iteration_cap_through_the_target_hook(monkeypatc
         return orig(self, n)
 
     monkeypatch.setattr(Target, "with_max_iterations", spy)
+    from icpbench.core.types import Batch
     from icpbench.datasets.synthetic import SyntheticSceneDataset
-    from icpbench.types import Batch
 
     batch = Batch.from_samples([SyntheticSceneDataset(n_samples=1, n_scan=200, n_map=2000)[0]])
     PGDAttack(steps=1, icp_iterations=3).run(batch, 0.5, surrogate=PointToPlaneICP("lidar"),

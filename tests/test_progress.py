@@ -2,7 +2,7 @@
 
 import io
 
-from icpbench.progress import RunProgress
+from icpbench.harness.progress import RunProgress
 
 
 class _Clock:

@@ -13,15 +13,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from icpbench import registry
 from icpbench.attacks.base import validate_budget
-from icpbench.errors import InputError
-from icpbench.generator.checkpoint import save_checkpoint
-from icpbench.generator.network import Generator, generator_config
-from icpbench.mapindex import MapIndex
-from icpbench.runner import build_attack, build_target
+from icpbench.core import registry
+from icpbench.core.errors import InputError
+from icpbench.core.mapindex import MapIndex
+from icpbench.core.types import Batch, Sample, validate_cloud
+from icpbench.harness.runner import build_attack, build_target
+from icpbench.learning.checkpoint import save_checkpoint
+from icpbench.learning.network import Generator, generator_config
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch, Sample, validate_cloud
 
 torch.set_num_threads(1)
 

@@ -21,12 +21,12 @@ import time
 import pytest
 import torch
 
-from icpbench import registry
 from icpbench.attacks.uniform import UniformTranslationAttack
-from icpbench.errors import InputError, PluginUnavailableError
-from icpbench.executors import LocalExecutor, RayExecutor, WorkItem, check_executor, get_executor
-from icpbench.results import RESULTS_FILE, TIMING_COLUMNS, load_results, read_manifest
-from icpbench.runner import RunConfig, run
+from icpbench.core import registry
+from icpbench.core.errors import InputError, PluginUnavailableError
+from icpbench.harness.executors import LocalExecutor, RayExecutor, WorkItem, check_executor, get_executor
+from icpbench.harness.results import RESULTS_FILE, TIMING_COLUMNS, load_results, read_manifest
+from icpbench.harness.runner import RunConfig, run
 
 torch.set_num_threads(1)
 
@@ -100,7 +100,7 @@ PLUGIN = textwrap.dedent('''
     """Plugins for the Ray tests: imported by every Ray worker through ICPBENCH_PLUGINS."""
     import numpy as np
 
-    from icpbench import registry
+    from icpbench.core import registry
     from icpbench.attacks.base import Attack
     from icpbench.datasets.synthetic import SyntheticSceneDataset
 

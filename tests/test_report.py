@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from icpbench.errors import InputError
-from icpbench.report import (
+from icpbench.core.errors import InputError
+from icpbench.harness.report import (
     health_warnings,
     pct_reference_larger,
     render,
@@ -121,7 +121,7 @@ def test_several_targets_need_choice_and_transfer_table(df):
 
 
 def test_transfer_vs_baseline_difference_and_share():
-    from icpbench.report import transfer_vs_baseline
+    from icpbench.harness.report import transfer_vs_baseline
 
     rows = []
     for t, (pgd_errs, conv) in {"p2plane": ([3.0, 2.0, 0.5], True),

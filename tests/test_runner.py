@@ -10,11 +10,11 @@ import pandas as pd
 import pytest
 import torch
 
-from icpbench import registry
 from icpbench.attacks.base import Attack
-from icpbench.errors import InputError
-from icpbench.results import RESULTS_FILE, ResultsStore, load_results, read_manifest
-from icpbench.runner import RunConfig, run
+from icpbench.core import registry
+from icpbench.core.errors import InputError
+from icpbench.harness.results import RESULTS_FILE, ResultsStore, load_results, read_manifest
+from icpbench.harness.runner import RunConfig, run
 
 GRID = ["--dataset", "synthetic", "--attacks", "none,uniform", "--targets", "p2plane",
         "--budgets", "0.5,1", "--samples", "12", "--batch-size", "2", "--quiet"]
@@ -92,8 +92,8 @@ def test_manifest_and_config_mismatch(tmp_path):
 def test_resume_refuses_results_of_a_changed_checkpoint(tmp_path):
     """The manifest stores a hash of each generator checkpoint; resuming after the file changed
     (e.g. a newly shipped model) is refused instead of silently mixing old and new results."""
-    from icpbench.generator.checkpoint import save_checkpoint
-    from icpbench.generator.network import Generator, generator_config
+    from icpbench.learning.checkpoint import save_checkpoint
+    from icpbench.learning.network import Generator, generator_config
 
     ckpt = tmp_path / "g.pt"
     save_checkpoint(Generator(generator_config("objects")), ckpt)
@@ -165,7 +165,7 @@ def test_uniform_error_equals_budget_on_synthetic(tmp_path):
 def test_git_dirty_ignores_output_folders(monkeypatch):
     import subprocess
 
-    from icpbench import runner as rmod
+    from icpbench.harness import runner as rmod
 
     def fake(status):
         def run(args, **kw):
@@ -177,5 +177,5 @@ def test_git_dirty_ignores_output_folders(monkeypatch):
     info = rmod.git_commit()
     assert info["commit"] == "abc123" and info["dirty"] is False
     assert info["dirty_paths"] == ["results/table1.md", "runs/x/a.csv"]
-    monkeypatch.setattr(rmod.subprocess, "run", fake(" M results/table1.md\n M icpbench/se3.py\n"))
+    monkeypatch.setattr(rmod.subprocess, "run", fake(" M results/table1.md\n M icpbench/core/se3.py\n"))
     assert rmod.git_commit()["dirty"] is True

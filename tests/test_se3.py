@@ -3,7 +3,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from icpbench.se3 import (
+from icpbench.core.se3 import (
     pose_error,
     pose_error_components,
     se3_exp,

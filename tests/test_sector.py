@@ -1,4 +1,4 @@
-"""Tests of the analytic sector baseline (icpbench.sector) and the ``sector`` attack plugin.
+"""Tests of the analytic sector baseline (icpbench.analysis.sector_math) and the ``sector`` attack plugin.
 
 Must-show of issue 6: (a) closed form == brute force over all sign patterns, (b) sliding-window
 sweep == brute-force grid of start angles, (c) the explicit perturbation pushed through one step of
@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench import sector
-from icpbench.errors import InputError
-from icpbench.mapindex import MapIndex
-from icpbench.se3 import pose_error
-from icpbench.synthetic import scene_sample
-from icpbench.types import Batch, Sample
+from icpbench.analysis import sector_math as sector
+from icpbench.core.errors import InputError
+from icpbench.core.mapindex import MapIndex
+from icpbench.core.se3 import pose_error
+from icpbench.core.types import Batch, Sample
+from icpbench.datasets.synthetic_scene import scene_sample
 
 torch.set_num_threads(1)
 
@@ -258,8 +258,8 @@ def test_attack_plugin_shape_displacement_and_extras(small_batch):
 
 
 def test_attack_plugin_matches_library_and_presets(small_batch):
-    from icpbench import registry
     from icpbench.attacks.sector import SectorAttack
+    from icpbench.core import registry
 
     assert registry.attacks.get("sector") is SectorAttack
     assert SectorAttack(icp_preset="objects").d_max == pytest.approx(0.3)

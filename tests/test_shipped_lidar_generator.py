@@ -4,12 +4,12 @@ and attacks a real lidar-sim test scan harder than the `normal` baseline at λ =
 import pytest
 import torch
 
-from icpbench import registry
 from icpbench.attacks.generator import resolve_checkpoint, shipped_checkpoint_dir
-from icpbench.generator.checkpoint import load_checkpoint
-from icpbench.se3 import pose_error_components
+from icpbench.core import registry
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
+from icpbench.learning.checkpoint import load_checkpoint
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 CKPT = shipped_checkpoint_dir("lidar-sim") / "generator.pt"
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from icpbench.core.errors import InputError
 from icpbench.datasets import clutter
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.ground import Ground
@@ -21,7 +22,6 @@ from icpbench.datasets.lidar_sim import LidarSimDataset
 from icpbench.datasets.sensors import SENSORS, sensor_config
 from icpbench.datasets.town import PLACES, MeshBuilder, make_town
 from icpbench.datasets.town_style import LEGACY, random_style
-from icpbench.errors import InputError
 
 torch.set_num_threads(1)
 
@@ -165,9 +165,9 @@ def test_moving_road_users_are_in_repeat_passes_only(town_ds):
 
 
 def test_new_town_samples_are_tagged_and_localise(town_ds):
-    from icpbench.se3 import pose_error_components
+    from icpbench.core.se3 import pose_error_components
+    from icpbench.core.types import Batch
     from icpbench.targets.p2plane import PointToPlaneICP
-    from icpbench.types import Batch
 
     ds = town_ds
     assert ds.cache_root != LidarSimDataset(cache_dir=ds.cache_root.parent.parent, **SMALL).cache_root
@@ -260,7 +260,7 @@ def test_lists_of_towns_and_sensors_make_a_mix(cache):
 
 # -- pictures ---------------------------------------------------------------------------------
 def test_towns_and_sensors_pictures(cache, tmp_path):
-    from icpbench.dataset_figures import sensors_figure, towns_figure
+    from icpbench.analysis.dataset_figures import sensors_figure, towns_figure
 
     towns = [LidarSimDataset(cache_dir=cache, town_seed=t, **SMALL) for t in (4, 5)]
     p = towns_figure(towns, tmp_path / "towns.png")

@@ -6,10 +6,10 @@ import json
 import pytest
 import torch
 
-from icpbench.errors import CheckpointError
-from icpbench.results import load_results
-from icpbench.runner import RunConfig, run
-from icpbench.training import train, train_config
+from icpbench.core.errors import CheckpointError
+from icpbench.harness.results import load_results
+from icpbench.harness.runner import RunConfig, run
+from icpbench.learning.training import train, train_config
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_per_budget_checkpoint_takes_precedence(tmp_path, monkeypatch):
 def test_fine_tuning_starts_from_the_given_weights(trained, tmp_path):
     """init_checkpoint: the model starts from the checkpoint's weights and config (not a fresh
     initialisation), and the card records where it came from."""
-    from icpbench.generator.checkpoint import load_checkpoint
+    from icpbench.learning.checkpoint import load_checkpoint
 
     cfg, out, _ = trained
     ft = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,
@@ -122,7 +122,7 @@ def test_fine_tuning_starts_from_the_given_weights(trained, tmp_path):
 def test_fine_tuning_can_add_the_global_feature(trained, tmp_path):
     """generator_overrides global_feature=True with init_checkpoint: the fine-tuned model has the
     scan descriptor, every old weight is carried over, and training moves the new map."""
-    from icpbench.generator.checkpoint import load_checkpoint
+    from icpbench.learning.checkpoint import load_checkpoint
 
     _, out, _ = trained
     ft = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,

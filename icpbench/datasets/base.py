@@ -1,4 +1,4 @@
-"""Dataset base class: an indexable, deterministic sequence of :class:`~icpbench.types.Sample`."""
+"""Dataset base class: an indexable, deterministic sequence of :class:`~icpbench.core.types.Sample`."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from icpbench.errors import InputError
-from icpbench.types import Sample
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 
 Split = Literal["train", "test", "all"]
 
@@ -45,7 +45,7 @@ class Dataset(ABC):
         """Settings the dataset accepts (name -> type hint), i.e. its ``--dataset-param`` keys: the
         named keyword parameters of ``__init__`` except ``seed`` and ``split`` (set by the run).
         Unknown settings are refused and values are coerced to these types before it is built."""
-        from icpbench.registry import keyword_params
+        from icpbench.core.registry import keyword_params
 
         return keyword_params(cls.__init__, skip=("seed", "split"))
 

@@ -38,11 +38,11 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import se3_exp
+from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
-from icpbench.errors import InputError
-from icpbench.se3 import se3_exp
-from icpbench.types import Sample
 
 FORMAT_VERSION = 1
 DEFAULT_TEACH = "boreas-2020-11-26-13-58"  # the map sequence of the Boreas localisation benchmark

@@ -26,10 +26,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
-from icpbench.errors import InputError
-from icpbench.types import Sample
 
 FORMAT_VERSION = 1
 

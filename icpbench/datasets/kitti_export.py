@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from icpbench.core.errors import InputError
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.lidar_model import cast_scan
-from icpbench.errors import InputError
 
 #: T_cam0_velo of the writer: camera z forward = lidar x, camera x right = -lidar y, camera y down
 #: = -lidar z, the camera 0.27 m ahead of and 0.08 m below the lidar (like KITTI's rig).

@@ -17,11 +17,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset
 from icpbench.datasets.sensors import DEFAULT_SENSOR
-from icpbench.errors import InputError
-from icpbench.types import Sample
 
 #: Random stream of the mix's shuffling (distinct from the single-town streams).
 _MIX_ORDER = 101

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import open3d as o3d
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -51,14 +51,14 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
 from icpbench.datasets.lidar_model import LidarConfig, cast_scan, make_scene
 from icpbench.datasets.sensors import DEFAULT_SENSOR, sensor_config
 from icpbench.datasets.town import PLACES, Route, Town, make_ground, make_route, make_town
 from icpbench.datasets.town_style import town_style
-from icpbench.errors import InputError
-from icpbench.types import Sample
 
 FORMAT_VERSION = 1  # bump whenever the town, lidar or submap code changes what is generated
 #: Random streams (third key of :func:`~icpbench.datasets.submaps.sample_rng`).

@@ -1,7 +1,7 @@
 """Triangle-mesh utilities and the ``meshes`` dataset: any folder of OBJ/OFF/PLY/STL meshes.
 
 Zhang et al. (ICRA 2025, §IV-A) build their object samples from ShapeNetCore meshes (Chang et al.,
-arXiv 1512.03012). :func:`mesh_sample` turns one triangle mesh into a :class:`~icpbench.types.Sample`
+arXiv 1512.03012). :func:`mesh_sample` turns one triangle mesh into a :class:`~icpbench.core.types.Sample`
 the way the paper describes, and is shared by :mod:`icpbench.datasets.objects` (procedural meshes)
 and :class:`MeshFolderDataset` (meshes read from disk):
 
@@ -35,10 +35,10 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset, Split
-from icpbench.errors import InputError
-from icpbench.synthetic import random_transform
-from icpbench.types import Sample
+from icpbench.datasets.synthetic_scene import random_transform
 
 #: File suffixes read as meshes (case-insensitive).
 MESH_SUFFIXES: tuple[str, ...] = (".obj", ".off", ".ply", ".stl")
@@ -472,7 +472,7 @@ class MeshFolderDataset(Dataset):
         """The named settings plus the :class:`ObjectSampling` fields (``**sampling``)."""
         from dataclasses import fields
 
-        from icpbench.registry import keyword_params
+        from icpbench.core.registry import keyword_params
 
         hints = keyword_params(ObjectSampling.__init__)
         return {**super().param_types(), **{f.name: hints.get(f.name, Any)

@@ -25,10 +25,10 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset, Split
 from icpbench.datasets.meshes import MeshFolderDataset, ObjectSampling, mesh_sample
-from icpbench.errors import InputError
-from icpbench.types import Sample
 
 Part = tuple[np.ndarray, np.ndarray]  # vertices (V, 3) float64, triangles (T, 3) int64
 _TM = o3d.geometry.TriangleMesh

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from icpbench.core.errors import InputError
 from icpbench.datasets.lidar_model import LidarConfig
-from icpbench.errors import InputError
 
 #: The default sensor (today's ``lidar-sim`` model).
 DEFAULT_SENSOR = "sim32"

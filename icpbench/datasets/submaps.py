@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from icpbench.errors import InputError
-from icpbench.types import Sample
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 
 
 # ---------------------------------------------------------------------------------------------

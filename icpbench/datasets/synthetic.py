@@ -2,7 +2,7 @@
 
 Fast to generate (no ray casting); used by tests, benchmarks and quick demos. Each sample is an
 independent surface sampling of the same scene seen from a randomly offset sensor frame
-(see :func:`icpbench.synthetic.scene_sample`).
+(see :func:`icpbench.datasets.synthetic_scene.scene_sample`).
 """
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from __future__ import annotations
 import math
 from typing import ClassVar
 
+from icpbench.core.errors import InputError
+from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset
-from icpbench.errors import InputError
-from icpbench.synthetic import scene_sample
-from icpbench.types import Sample
+from icpbench.datasets.synthetic_scene import scene_sample
 
 
 class SyntheticSceneDataset(Dataset):

@@ -43,10 +43,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from icpbench.core.errors import InputError
 from icpbench.datasets import clutter
 from icpbench.datasets.ground import Ground
 from icpbench.datasets.town_style import DEFAULT_CORNERS, DEFAULT_LAYOUT, DEFAULT_ROAD, LEGACY, TownStyle
-from icpbench.errors import InputError
 
 #: place -> stretch type (the ``stretch`` metadata of samples).
 PLACES: dict[str, str] = {

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 #: Default route: corners of a hexagon-like loop (metres, about 2.8 km once the corners are rounded).
 DEFAULT_CORNERS: tuple[tuple[float, float], ...] = (

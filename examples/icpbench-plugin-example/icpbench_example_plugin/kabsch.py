@@ -10,9 +10,9 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from icpbench.core.types import Registration
 from icpbench.targets.base import Target
 from icpbench.targets.icp import icp_config
-from icpbench.types import Registration
 
 
 class KabschICP(Target):

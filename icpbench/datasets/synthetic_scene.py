@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from icpbench.types import Sample
+from icpbench.core.types import Sample
 
 
 def _box_surface(rng: np.random.Generator, center, size, yaw, n) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,7 @@
 
 The runner cuts the evaluation grid into *work items*: one batch of samples under one attack seed,
 with the (budget, attack) units of that batch that the results store still lacks, in grid order.
-A *worker* (:class:`icpbench.runner.GridWorker`, built from the run's configuration: dataset,
+A *worker* (:class:`icpbench.harness.runner.GridWorker`, built from the run's configuration: dataset,
 targets, surrogate, attacks and their caches) turns a work item into one list of result rows per
 unit. An executor decides only where workers live; every row is computed by the same code from the
 same seeds, and the driver appends rows to the results store itself, in item order, so the results
@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
-from icpbench.errors import IcpbenchError, InputError, PluginUnavailableError
+from icpbench.core.errors import IcpbenchError, InputError, PluginUnavailableError
 
 Row = dict[str, Any]
 

@@ -31,8 +31,8 @@ import torch
 from torch import Tensor, nn
 
 if TYPE_CHECKING:
-    from icpbench.generator.geometry import Geometry
-    from icpbench.generator.network import Generator, SetAbstraction
+    from icpbench.learning.geometry import Geometry
+    from icpbench.learning.network import Generator, SetAbstraction
 
 
 class Workspace:

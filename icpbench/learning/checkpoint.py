@@ -1,12 +1,12 @@
 """Generator checkpoints: a plain state dict (``<name>.pt``) plus a JSON file beside it (``<name>.json``).
 
-The JSON file holds the format tag, the :class:`~icpbench.generator.network.GeneratorConfig` needed
+The JSON file holds the format tag, the :class:`~icpbench.learning.network.GeneratorConfig` needed
 to rebuild the network, and a free-form *model card* (training data, budget, loss weights, epochs,
 wall time, resulting Table 1 numbers, ...; docs/architecture.md, "Training and checkpoints").
 Weights are loaded with
 ``torch.load(path, weights_only=True)``, which refuses pickled Python objects, so opening a
 checkpoint never runs code from the file. Every failure raises
-:class:`~icpbench.errors.CheckpointError` saying which file is wrong and how.
+:class:`~icpbench.core.errors.CheckpointError` saying which file is wrong and how.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from typing import Any
 
 import torch
 
-from icpbench.errors import CheckpointError, InputError
-from icpbench.generator.network import Generator, GeneratorConfig
+from icpbench.core.errors import CheckpointError, InputError
+from icpbench.learning.network import Generator, GeneratorConfig
 
 FORMAT = "icpbench-generator"
 FORMAT_VERSION = 1

@@ -26,10 +26,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from icpbench.core.errors import InputError  # noqa: E402
+from icpbench.core.types import Sample  # noqa: E402
 from icpbench.datasets import submaps as sm  # noqa: E402
 from icpbench.datasets.base import Dataset  # noqa: E402
-from icpbench.errors import InputError  # noqa: E402
-from icpbench.types import Sample  # noqa: E402
 
 PLACE_COLOURS = {"suburb": "#d62728", "parking": "#ff7f0e", "field": "#bcbd22",
                  "highway": "#1f77b4", "underpass": "#9467bd"}
@@ -41,7 +41,7 @@ def _resolve(dataset: str | Dataset, kwargs: dict[str, Any]) -> Dataset:
     if isinstance(dataset, Dataset):
         return dataset
     if isinstance(dataset, str):
-        from icpbench.registry import datasets
+        from icpbench.core.registry import datasets
 
         return datasets.get(dataset)(**kwargs)
     raise InputError(f"expected a dataset name or a Dataset, got {type(dataset).__name__}")

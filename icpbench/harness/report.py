@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 from tabulate import tabulate
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 Format = Literal["md", "latex", "csv"]
 PAIR_KEYS = ["sample_id", "target", "budget", "seed"]
@@ -208,7 +208,7 @@ def displacement_notes(df: pd.DataFrame) -> list[str]:
 
 
 def load_notes(df: pd.DataFrame) -> list[str]:
-    """Footer: rows :func:`~icpbench.results.load_results` left out (half-written lines, and the
+    """Footer: rows :func:`~icpbench.harness.results.load_results` left out (half-written lines, and the
     earlier rows of keys stored twice)."""
     out = []
     if df.attrs.get("incomplete_rows"):
@@ -238,7 +238,7 @@ def check_table_destination(path: str | Path) -> None:
             its lock), or an existing file in a results folder that is not a table written by
             ``icpbench table``.
     """
-    from icpbench.results import STORE_FILES, is_results_dir
+    from icpbench.harness.results import STORE_FILES, is_results_dir
 
     p = Path(path)
     if str(path) == "":

@@ -21,7 +21,7 @@ Model (one Gauss-Newton step from the true pose, known association, no robust ke
 Pose-error frame (``frame`` argument):
 
 * ``"map"`` (default): ``xi = log(T_hat inv(T_gt))`` = [rho, phi] in the map frame, exactly the
-  harness's pose error (:func:`icpbench.se3.pose_error`) and the left-perturbation update of our
+  harness's pose error (:func:`icpbench.core.se3.pose_error`) and the left-perturbation update of our
   ICP (``T <- exp(delta^) T``): rows ``a_i = [n_i, q_i x n_i]``. For the lidar datasets the map is
   expressed in the true vehicle frame (docs/architecture.md, "Frames, units and pose error"), so
   component 0 (``rho_x``) is longitudinal
@@ -50,8 +50,8 @@ from typing import Literal
 import numpy as np
 from scipy.special import ndtr
 
-from icpbench.errors import InputError
-from icpbench.mapindex import MapIndex
+from icpbench.core.errors import InputError
+from icpbench.core.mapindex import MapIndex
 
 PoseFrame = Literal["map", "sensor"]
 
@@ -170,7 +170,8 @@ def associate(scan: np.ndarray, T_gt: np.ndarray, map_index: MapIndex, d_max: fl
     p = _points(scan, "scan", allow_nonfinite=True)
     T = _transform(T_gt)
     if not isinstance(map_index, MapIndex):
-        raise InputError(f"map_index must be an icpbench.mapindex.MapIndex, got {type(map_index).__name__}")
+        raise InputError("map_index must be an icpbench.core.mapindex.MapIndex, got "
+                         f"{type(map_index).__name__}")
     if map_index.normals is None:
         raise InputError("the map has no normals; build MapIndex(points, normals) with unit normals")
     d_max = float(d_max)

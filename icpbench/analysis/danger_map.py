@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from icpbench.errors import InputError
-from icpbench.plotting import pyplot, save
+from icpbench.analysis.plotting import pyplot, save
+from icpbench.core.errors import InputError
 
 LOCATION = "meta.frame"
 ERROR_CAP_M = 3.0  # colour scale cap of figure 5
@@ -167,7 +167,7 @@ def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path
                compare: str | None = None) -> dict:
     """Write the CSVs and PNGs of the danger map (and the comparison, if ``compare``); return the
     summary (AUC open-vs-dense, pass rank correlation, file list), also saved as summary.json."""
-    from icpbench.results import write_json_atomic
+    from icpbench.harness.results import write_json_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

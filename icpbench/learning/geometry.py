@@ -48,8 +48,8 @@ import numpy as np
 import small_gicp
 import torch
 
-from icpbench.errors import InputError
-from icpbench.types import validate_cloud
+from icpbench.core.errors import InputError
+from icpbench.core.types import validate_cloud
 
 FPSMethod = Literal["exact", "bucket"]
 

@@ -27,7 +27,7 @@ from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import Any, Literal
 
-from icpbench.errors import InputError, PluginUnavailableError
+from icpbench.core.errors import InputError, PluginUnavailableError
 
 
 @dataclass

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -123,11 +123,11 @@ class Batch:
 
     @property
     def maps(self) -> list[Any]:
-        """B :class:`~icpbench.mapindex.MapIndex` (KD-tree + normals), built once and cached.
+        """B :class:`~icpbench.core.mapindex.MapIndex` (KD-tree + normals), built once and cached.
 
         Pass ``maps=`` to :meth:`from_samples` to share them across batches (the runner does)."""
         if self._maps is None:
-            from icpbench.mapindex import MapIndex
+            from icpbench.core.mapindex import MapIndex
 
             self._maps = [MapIndex(s.map, s.map_normals) for s in self.samples]
         return self._maps

@@ -15,7 +15,7 @@ import numpy as np
 import small_gicp
 import torch
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 
 class MapIndex:

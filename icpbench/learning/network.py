@@ -12,7 +12,7 @@ Zhou et al. CVPR 2020, without its label inputs):
   F1 and the (scaled) coordinates X: 64 * 4 + 3 = 259 channels; head of four 1-D convolutions
   259 -> 256 -> 128 -> 64 -> 3 (ReLU between, linear output).
 
-All sampling/grouping indices come from :mod:`icpbench.generator.geometry` (computed once from the
+All sampling/grouping indices come from :mod:`icpbench.learning.geometry` (computed once from the
 clean scan), so a forward pass is gathers and matrix products only.
 
 Design choices (the paper does not state them; see also docs/methods.md, "Generator design"):
@@ -78,10 +78,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from icpbench.errors import InputError
-from icpbench.generator import fast
-from icpbench.generator.geometry import Geometry, GeometryConfig, compute_geometry_batch
-from icpbench.generator.prior import PRIOR_CHANNELS
+from icpbench.core.errors import InputError
+from icpbench.learning import fast
+from icpbench.learning.geometry import Geometry, GeometryConfig, compute_geometry_batch
+from icpbench.learning.prior import PRIOR_CHANNELS
 
 Norm = Literal["group", "batch", "none"]
 Output = Literal["residual", "absolute", "bounded"]
@@ -99,7 +99,7 @@ class GeneratorConfig:
 
     Attributes:
         a, b, c, k, k_interp, idw_power, fps: index precompute, see
-            :class:`~icpbench.generator.geometry.GeometryConfig`.
+            :class:`~icpbench.learning.geometry.GeometryConfig`.
         scale_m: coordinates are divided by this inside the network (metres; 1 for unit objects).
         offset_scale_m: residual output unit (metres): ``X_adv = X + offset_scale_m * h``.
         output: ``"residual"`` (zero-initialised offset), ``"absolute"`` (paper/LG-GAN) or
@@ -111,7 +111,7 @@ class GeneratorConfig:
         global_feature: add a zero-initialised linear map of the scan's max-pooled F4 descriptor
             to the first head layer (see the module docstring).
         prior: ``"sector"``: the model also takes the analytic per-point channels of
-            :mod:`icpbench.generator.prior` (B, N, 8) as input features of the first SA level and
+            :mod:`icpbench.learning.prior` (B, N, 8) as input features of the first SA level and
             of the head, and adds ``prior_gain`` times the sector attack's direction to its output
             before the bounded squashing (needs ``output="bounded"``); ``"none"``: coordinates only.
         prior_gain: initial value of the learnable gain of the prior direction (dimensionless).
@@ -427,7 +427,7 @@ class Generator(nn.Module):
         if self.needs_prior:
             if not isinstance(prior, Tensor) or prior.shape != (*x.shape[:2], PRIOR_CHANNELS):
                 raise InputError(f"this generator needs prior channels of shape "
-                                 f"{(*x.shape[:2], PRIOR_CHANNELS)} (icpbench.generator.prior), got "
+                                 f"{(*x.shape[:2], PRIOR_CHANNELS)} (icpbench.learning.prior), got "
                                  f"{getattr(prior, 'shape', type(prior).__name__)}")
         elif prior is not None:
             raise InputError("this generator takes no prior channels (prior='none'); pass prior=None")
@@ -514,7 +514,7 @@ class Generator(nn.Module):
                 prior: Tensor | None = None) -> Tensor:
         """x (B, N, 3) clean scans (sensor frame, metres), geo from :meth:`precompute` on the same
         scans, budget (B,) metres (conditioned models only), prior (B, N, 8) channels of
-        :func:`icpbench.generator.prior.sector_prior_batch` (prior models only) -> adversarial
+        :func:`icpbench.learning.prior.sector_prior_batch` (prior models only) -> adversarial
         scans (B, N, 3).
 
         The batch is run in chunks of :attr:`chunk_size` samples inside one autograd graph; with

@@ -16,12 +16,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from icpbench import registry
+from icpbench.analysis.plotting import pyplot, save
 from icpbench.attacks.base import Attack
-from icpbench.plotting import pyplot, save
-from icpbench.se3 import pose_error_components
+from icpbench.core import registry
+from icpbench.core.se3 import pose_error_components
+from icpbench.core.types import Batch
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 
 def study(models: dict[str, str], budget: float, n_objects: int = 24, n_figure: int = 4,

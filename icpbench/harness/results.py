@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 RESULTS_FILE = "results.csv"
 MANIFEST_FILE = "manifest.json"

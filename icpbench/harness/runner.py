@@ -10,7 +10,7 @@ an interrupted run resumes where it stopped. A plugin that raises inside a unit 
 gets its own random stream from (seed, attack, budget, sample id), so rows do not depend on the
 batch size or the executor. The results folder is locked while a run writes to it.
 
-Where units are computed is the executor's business (:mod:`icpbench.executors`: ``local`` in this
+Where units are computed is the executor's business (:mod:`icpbench.harness.executors`: ``local`` in this
 process, ``ray`` on a Ray cluster); every executor yields the rows in grid order and only this
 process writes them, so the results file is the same whatever the executor.
 """
@@ -32,13 +32,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from icpbench import registry
 from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput, validate_budget
+from icpbench.core import registry
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import POSE_ERROR_COLUMNS, pose_error_components
+from icpbench.core.types import Batch, Sample
 from icpbench.datasets.base import Dataset
-from icpbench.errors import InputError
-from icpbench.executors import WorkItem, check_executor, get_executor
-from icpbench.progress import RunProgress
-from icpbench.results import (
+from icpbench.harness.executors import WorkItem, check_executor, get_executor
+from icpbench.harness.progress import RunProgress
+from icpbench.harness.results import (
     BAD_INPUT,
     MANIFEST_FILE,
     RESULTS_FILE,
@@ -47,9 +49,7 @@ from icpbench.results import (
     read_manifest,
     write_json_atomic,
 )
-from icpbench.se3 import POSE_ERROR_COLUMNS, pose_error_components
 from icpbench.targets.base import Target
-from icpbench.types import Batch, Sample
 
 
 @dataclass

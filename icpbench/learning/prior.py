@@ -3,7 +3,7 @@
 Beyond the paper (docs/methods.md, "Sensitivity prior"): the PointNet++ generator sees only point
 coordinates, so it must discover from data which points constrain which pose direction. The
 linearised point-to-plane step of the sector baseline (Laconte, Lisus & Barfoot, RA-L 2024,
-arXiv 2309.04251; :mod:`icpbench.sector`) gives exactly that in closed form at the cost of one
+arXiv 2309.04251; :mod:`icpbench.analysis.sector_math`) gives exactly that in closed form at the cost of one
 nearest-neighbour query and a 6x6 solve. With ``GeneratorConfig.prior = "sector"`` the generator
 receives, for every scan point (sensor frame):
 
@@ -26,9 +26,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from icpbench import sector
-from icpbench.errors import InputError
-from icpbench.mapindex import MapIndex
+from icpbench.analysis import sector_math as sector
+from icpbench.core.errors import InputError
+from icpbench.core.mapindex import MapIndex
 
 #: Number of prior channels per point (see the module docstring).
 PRIOR_CHANNELS = 8

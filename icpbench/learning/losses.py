@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from icpbench.errors import InputError
+from icpbench.core.errors import InputError
 
 #: w_1..w_6 of eq. 3 over [rho_x, rho_y, rho_z, phi_x, phi_y, phi_z] (paper §IV-C1).
 WEIGHT_PRESETS: dict[str, tuple[float, ...]] = {

@@ -13,7 +13,7 @@ same output directory resumes after the last finished epoch.
 
 Several GPUs (or CPU processes): launch the same command with ``torchrun``; each process trains on
 its shard of the training subset and DistributedDataParallel averages the gradients (see
-:mod:`icpbench.distributed`). Without torchrun the loop is the single-process one.
+:mod:`icpbench.learning.distributed`). Without torchrun the loop is the single-process one.
 """
 
 from __future__ import annotations
@@ -30,17 +30,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from icpbench import distributed as ddp
-from icpbench import registry
 from icpbench.attacks.base import project_to_ball
-from icpbench.errors import CheckpointError, InputError
-from icpbench.generator.prior import sector_prior, sector_prior_batch
-from icpbench.losses import adversarial_loss, reconstruction_loss, weights
-from icpbench.progress import progress_bar
-from icpbench.results import write_json_atomic
-from icpbench.se3 import pose_error, pose_error_components
+from icpbench.core import registry
+from icpbench.core.errors import CheckpointError, InputError
+from icpbench.core.se3 import pose_error, pose_error_components
+from icpbench.core.types import Batch
+from icpbench.harness.progress import progress_bar
+from icpbench.harness.results import write_json_atomic
+from icpbench.learning import distributed as ddp
+from icpbench.learning.losses import adversarial_loss, reconstruction_loss, weights
+from icpbench.learning.prior import sector_prior, sector_prior_batch
 from icpbench.targets.p2plane import PointToPlaneICP
-from icpbench.types import Batch
 
 
 @dataclass
@@ -68,7 +68,7 @@ class TrainConfig:
         init_checkpoint: start from these weights (fine-tuning; the generator settings are taken
             from its JSON, ``generator_preset``/``generator_overrides`` are then ignored, except
             ``global_feature=True``, which adds the zero-initialised scan descriptor to a model
-            trained without it, see :func:`~icpbench.generator.network.add_global_feature`).
+            trained without it, see :func:`~icpbench.learning.network.add_global_feature`).
         adv_per_budget: divide each sample's adversarial loss by its lambda, so that with several
             budgets the large ones (whose errors are larger) do not dominate the gradient.
     """
@@ -171,8 +171,8 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
 
 def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, progress: bool,
            log: Callable[[str], None] | None) -> dict[str, Any]:
-    from icpbench.generator.checkpoint import load_checkpoint, save_checkpoint
-    from icpbench.generator.network import Generator, add_global_feature, add_prior, generator_config
+    from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
+    from icpbench.learning.network import Generator, add_global_feature, add_prior, generator_config
 
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "train_config.json"
@@ -236,7 +236,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     if ctx.is_main and not history_path.exists():
         history_path.write_text("epoch,phase,loss,l_adv,l_rec,trans_err_xy,lr,wall_s\n")
     t0 = time.perf_counter()
-    from icpbench.generator.geometry import Geometry
+    from icpbench.learning.geometry import Geometry
 
     for epoch in range(start_epoch, total_epochs):
         pretrain = epoch < cfg.pretrain_epochs
@@ -324,7 +324,7 @@ def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
     once per scan, like the index precompute."""
     if not model.needs_prior:
         return None
-    from icpbench.mapindex import MapIndex
+    from icpbench.core.mapindex import MapIndex
 
     return torch.as_tensor(sector_prior(sample.scan, sample.T_gt,
                                         MapIndex(sample.map, sample.map_normals),
@@ -338,7 +338,7 @@ def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
     along the chain (seconds)."""
     card = _own_card(cfg, epochs_done, wall_s, data_s, n_train)
     if cfg.init_checkpoint is not None:
-        from icpbench.generator.checkpoint import read_checkpoint_meta
+        from icpbench.learning.checkpoint import read_checkpoint_meta
 
         parent = read_checkpoint_meta(cfg.init_checkpoint)[1]["card"]
         card["init_card"] = parent
@@ -370,7 +370,7 @@ def _own_card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
 
 def evaluate(cfg: TrainConfig, ckpt: Path, *, progress: bool = False) -> dict[str, Any]:
     """Held-out evaluation (test split, test ICP settings) written into the model card."""
-    from icpbench.generator.checkpoint import load_checkpoint
+    from icpbench.learning.checkpoint import load_checkpoint
 
     lg = load_checkpoint(ckpt, map_location=cfg.device)
     card = dict(lg.card)

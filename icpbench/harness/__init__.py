@@ -1,0 +1,1 @@
+"""The evaluation harness: runner, executors, results store, reports and progress output."""
