@@ -12,7 +12,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import small_gicp
 import torch
 
 from icpbench.errors import InputError
@@ -51,6 +50,8 @@ class MapIndex:
     def tree(self) -> Any:
         """The small_gicp ``KdTree`` over the points (built on first use)."""
         if self._tree is None:
+            import small_gicp  # imported on first use: modules that only name MapIndex stay light
+
             self._tree = small_gicp.KdTree(self.points, num_threads=self.workers)
         return self._tree
 
