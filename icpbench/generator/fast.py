@@ -92,7 +92,8 @@ def _affine(y: Tensor, norm: nn.Module, ws: Workspace) -> tuple[Tensor, Tensor]:
     return a.to(y.dtype), b.to(y.dtype)
 
 
-#: Rows per block of the normalisation statistics (4,096 x 64 float32 = 1 MB: stays in cache).
+#: Rows per block of the normalisation statistics (4,096 x 64 float32 = 1 MB: stays in cache;
+#: 16,384 rows measured the same, 65,536 slower).
 _BLOCK_ROWS = 4096
 
 
@@ -130,7 +131,7 @@ def _interpolate(conv: nn.Conv1d, norm: nn.Module, ws: Workspace, feat: Tensor, 
     pre = torch.addmm(conv.bias, feat, conv.weight[:, :, 0].T)  # (n_k, 64)
     N, k = idx.shape
     g = pre.index_select(0, idx.reshape(-1)).view(N, k, -1)
-    up = (g * w.to(g.dtype)[..., None]).sum(1)
+    up = torch.bmm(w.to(g.dtype).view(N, 1, k), g).view(N, -1)  # weighted sum over the k
     a, b = _affine(up, norm, ws)
     return up.mul_(a).add_(b).relu_()
 
