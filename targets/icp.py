@@ -267,7 +267,9 @@ class _Correspondences:
             self.idx[b, sel] = i + self.offsets[b]
             self.found[b, sel] = i < len(self.maps[b])
             self.ref[b][:, sel] = qs
-            self.slack[b, sel] = np.where(d2 > d1, 0.5 * (d2 - d1) - self._MARGIN_M, -np.inf)
+            gap = d2 > d1  # False where the tree found nothing (inf, inf): re-query every time
+            self.slack[b, sel] = -np.inf
+            self.slack[b, sel[gap]] = 0.5 * (d2[gap] - d1[gap]) - self._MARGIN_M
             self.queried += sel.size
         return torch.from_numpy(self.idx)
 

@@ -1,9 +1,10 @@
 """A map prepared once for nearest-neighbour queries: points, normals and a KD-tree.
 
 Nearest neighbours come from small_gicp's ``KdTree`` (nanoflann-style, exact). Measured on the
-2-core CPU, 1 thread, CPU-time medians (when the library was chosen): 10,000 queries into a 100,000-point
-map took 5.4 ms with small_gicp against 8.2 ms with pykdtree and 12.8 ms with SciPy's ``cKDTree``
-(2,048 into 10,000: 0.76 / 1.14 / 1.69 ms); Open3D's tensor ``NearestNeighborSearch`` took 12 ms.
+2-core CPU, 1 thread, CPU-time medians (docs/performance.md): 10,000 queries into a
+100,000-point map took 5.4 ms with small_gicp against 8.2 ms with pykdtree and 12.8 ms with
+SciPy's ``cKDTree`` (2,048 into 10,000: 0.76 / 1.14 / 1.69 ms); Open3D's tensor
+``NearestNeighborSearch`` took 12 ms.
 Results are identical (exact search). A dense ``torch.cdist`` was ~500x slower than any tree.
 """
 
@@ -12,7 +13,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import small_gicp
 import torch
 
 from icpbench.core.errors import InputError
@@ -51,6 +51,8 @@ class MapIndex:
     def tree(self) -> Any:
         """The small_gicp ``KdTree`` over the points (built on first use)."""
         if self._tree is None:
+            import small_gicp  # imported on first use: modules that only name MapIndex stay light
+
             self._tree = small_gicp.KdTree(self.points, num_threads=self.workers)
         return self._tree
 

@@ -45,7 +45,6 @@ from typing import Any, Literal
 
 import fpsample
 import numpy as np
-import small_gicp
 import torch
 
 from icpbench.core.errors import InputError
@@ -259,6 +258,8 @@ def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig |
             f"needs n4 >= k_interp: use at least {cfg.min_points()} points or smaller a, b, c, K")
     fps = farthest_point_indices(x, n2, cfg.fps)
     lvl = [x, x[fps], x[fps[:n3]], x[fps[:n4]]]
+    import small_gicp  # on first use, as in icpbench.core.mapindex
+
     trees = [small_gicp.KdTree(np.ascontiguousarray(p)) for p in lvl]
     groups = [_knn(trees[0], lvl[0], cfg.k)[1]]
     for k in (1, 2, 3):  # level k+1 centroids grouped over level k
