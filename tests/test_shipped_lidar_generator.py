@@ -1,5 +1,5 @@
 """The shipped lidar-sim generator: loads safely, serves every budget of Table 1 within the budget,
-and attacks a real lidar-sim test scan harder than the `normal` baseline at λ = 1 m."""
+and attacks real lidar-sim test scans harder than the `normal` baseline."""
 
 import pytest
 import torch
@@ -25,25 +25,29 @@ def test_card_and_resolution():
     while stage.get("init_checkpoint"):
         total += stage["train_wall_s"]
         stage = stage["init_card"]
-    assert stage["epochs_done"] >= 1 and card["train_wall_s_total"] == pytest.approx(
-        total + stage["train_wall_s"], abs=0.2)
+    assert stage["epochs_done"] >= 1 and card.get("train_wall_s_total", card["train_wall_s"]) == \
+        pytest.approx(total + stage["train_wall_s"], abs=0.2)
     for lam in (1.0, 2.0, 3.0, 4.0, 5.0):
         assert resolve_checkpoint("lidar-sim", lam) == CKPT
 
 
 @pytest.mark.parametrize("budget", [1.0, 5.0])
-def test_beats_normal_on_a_test_scan_within_the_budget(budget):
+def test_beats_normal_on_test_scans_within_the_budget(budget):
+    """On the first four test scans the generator's mean error (every run at its final error: the
+    sensitivity-prior model often keeps ICP from converging at large budgets) exceeds normal's,
+    and at λ = 1 m it is larger on every scan."""
     ds = registry.datasets.get("lidar-sim")(seed=0, split="test")
-    batch = Batch.from_samples([ds[2]])  # a dense-street scan
+    batch = Batch.from_samples([ds[i] for i in range(4)])
     icp = PointToPlaneICP("lidar")
     errs, disps = {}, {}
     for name in ("normal", "generator"):
         kw = {"dataset": "lidar-sim"} if name == "generator" else {}
-        out = registry.attacks.get(name)(**kw).run(batch, budget, surrogate=icp,
-                                                   generator=torch.Generator().manual_seed(0))
+        out = registry.attacks.get(name)(**kw).run(batch, budget, surrogate=icp, generator=0)
         with torch.no_grad():
             reg = icp.register(out.scans, batch.maps, batch.T_init)
-        errs[name] = float(pose_error_components(reg.T, batch.T_gt)["trans_err_xy"][0])
-        disps[name] = float(out.stats["disp_max"][0])
+        errs[name] = pose_error_components(reg.T, batch.T_gt)["trans_err_xy"]
+        disps[name] = float(out.stats["disp_max"].max())
     assert disps["generator"] <= budget * (1 + 1e-9)
-    assert errs["generator"] > errs["normal"] > 0.5 * budget
+    assert float(errs["generator"].mean()) > float(errs["normal"].mean()) > 0.5 * budget
+    if budget == 1.0:
+        assert bool((errs["generator"] > errs["normal"]).all()), errs

@@ -110,15 +110,20 @@ def summary_table(rows: pd.DataFrame) -> pd.DataFrame:
 
 
 def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path,
-           budget: float) -> Path:
+           budget: float | None = None) -> Path:
     """Grid: objects x (original, attacks...); each attacked panel shows the adversarial cloud and
     its displacement arrows (a fixed subset of points, magnified so that lambda is 0.15 units
-    long), coloured by their direction in the x-y plane (hsv). Soft-bound rows are not drawn."""
+    long), coloured by their direction in the x-y plane (hsv). Soft-bound rows are not drawn.
+    ``budget`` (lambda) defaults to the largest displacement in the drawn clouds."""
     plt = pyplot()
 
-    names = [n for n in clouds if n != "_clean" and not n.endswith(SOFT_SUFFIX)]
+    listed = set(rows["attack"])  # panels need their row (errors to annotate)
+    names = [n for n in clouds if n in listed and not n.endswith(SOFT_SUFFIX)]
     clean = clouds["_clean"]
     k = clean.shape[0]
+    if budget is None:
+        budget = max((float(np.linalg.norm(clouds[n] - clean, axis=-1).max()) for n in names),
+                     default=0.0) or 1.0
     mag = 0.15 / budget
     # one row per object: its panels share both axes, so the clouds are drawn at the same scale
     fig, axes = plt.subplots(k, len(names), figsize=(2.6 * len(names), 2.6 * k), squeeze=False,
@@ -144,7 +149,7 @@ def figure(rows: pd.DataFrame, clouds: dict[str, np.ndarray], path: str | Path,
                     ha="right", va="top", fontsize=7)
             ax.text(0.98, 0.02, f"{r['xy_err']:.3f}", transform=ax.transAxes, ha="right",
                     va="bottom", fontsize=7)
-            if n != "original":
+            if n != "original" and "disp_max" in r:
                 ax.text(0.02, 0.02, f"max |d| {r['disp_max']:.3f}", transform=ax.transAxes,
                         ha="left", va="bottom", fontsize=6)
             ax.set_aspect("equal")
