@@ -72,8 +72,13 @@ def test_shipped_lidar_generator_output_is_unchanged():
     x = batch.scans.to(torch.float32)
     geo = model.precompute(x)
     budget = torch.tensor([4.0])
+    prior = None
+    if model.needs_prior:  # the shipped model takes the sector prior channels
+        from icpbench.learning.prior import sector_prior_batch
+
+        prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps, model.config.prior_dmax)
     with torch.no_grad():
-        got = model(x, geo, budget)
-        ref = model.decode(x, geo, model.encode(x, geo), budget)
+        got = model(x, geo, budget, prior)
+        ref = model.decode(x, geo, model.encode(x, geo, prior), budget, prior=prior)
     assert float((ref - x).norm(dim=-1).max()) > 1.0
     torch.testing.assert_close(got, ref, rtol=0, atol=1e-4)
