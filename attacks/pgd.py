@@ -4,7 +4,9 @@ Beyond the paper: a white-box oracle in the spirit of Madry et al. (ICLR 2018). 
 displacement of every point is optimised directly, through the unrolled differentiable surrogate
 ICP, to maximise ``||w_1:3 * rho|| + ||w_4:6 * phi||`` (the negative of the generator's adversarial
 loss, eq. 3, same weight presets); after every step each point's displacement is projected onto its
-Euclidean lambda-ball, so the budget holds exactly (no soft bound). Random start inside the ball; the
+Euclidean lambda-ball, so the budget holds exactly (no soft bound). Random start inside the ball
+(default), the clean scan, or the analytic sector attack's output (``init="sector"``, a warm start:
+the one-step worst case of Laconte et al., RA-L 2024, with the surrogate's association gate); the
 per-point ascent direction is the normalised gradient of that point; the best iterate per scan is
 returned. Slow and strong: it shows how close the generator gets and at what cost.
 
@@ -40,7 +42,11 @@ class PGDAttack(Attack):
         weights: weight preset (``xy``, ``x-only``, ``theta-only``) or 6 numbers.
         icp_iterations: iteration cap of the surrogate ICP inside the attack (the paper trains
             with 25); the tolerance is kept, so converged samples stop early.
-        random_start: start from a uniform random point of each ball (else from the clean scan).
+        random_start: start from a uniform random point of each ball (else from the clean scan);
+            ignored when ``init`` is given.
+        init: ``"random"``, ``"clean"`` or ``"sector"`` (the sector attack's output, which moves
+            every associated point by the budget along its map normal; the ascent then starts
+            from the one-step worst case). None: ``"random"`` if ``random_start`` else ``"clean"``.
         restarts: independent random starts; the best result per scan is kept.
         schedule: ``"constant"`` (every step ``step_size``) or ``"cosine"`` (from ``step_size``
             down to ``final_step_size`` on a half cosine over ``steps``).
@@ -62,11 +68,17 @@ class PGDAttack(Attack):
                  weights: str | list[float] = "xy", icp_iterations: int = 25,
                  random_start: bool = True, restarts: int = 1, schedule: str = "constant",
                  final_step_size: float = 0.02, patience: int | None = None,
-                 backprop: str | None = None, **params: Any) -> None:
+                 backprop: str | None = None, init: str | None = None, **params: Any) -> None:
+        if init is None:
+            init = "random" if random_start else "clean"
+        if init not in ("random", "clean", "sector"):
+            raise InputError(f"pgd init must be 'random', 'clean' or 'sector', got {init!r}")
+        random_start = init == "random"
         super().__init__(strict=strict, steps=steps, step_size=step_size, weights=weights,
                          icp_iterations=icp_iterations, random_start=random_start,
                          restarts=restarts, schedule=schedule, final_step_size=final_step_size,
-                         patience=patience, backprop=backprop, **params)
+                         patience=patience, backprop=backprop, init=init, **params)
+        self.init = init
         if steps < 1 or restarts < 1:
             raise InputError("pgd needs steps >= 1 and restarts >= 1")
         if not step_size > 0:
@@ -118,7 +130,9 @@ class PGDAttack(Attack):
         with torch.no_grad():
             best_val = self._objective(icp, batch, clean)
         for _ in range(self.restarts):
-            if self.random_start:
+            if self.init == "sector":
+                adv = self._sector_start(batch, budget_m, icp).to(torch.float64)
+            elif self.random_start:
                 d = generator.randn(*clean.shape[1:], dtype=torch.float64)  # per-sample streams
                 d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
                 r = generator.rand(clean.shape[1], 1, dtype=torch.float64)
@@ -127,6 +141,18 @@ class PGDAttack(Attack):
                 adv = clean.clone()
             best, best_val = self._ascend(icp, batch, clean, adv, budget_m, best, best_val)
         return best.to(batch.scans.dtype)
+
+    @staticmethod
+    def _sector_start(batch: Batch, budget_m: float, icp: Target) -> torch.Tensor:
+        """The sector attack's adversarial scans (B, N, 3) with the surrogate's association gate
+        ``d_max`` (metres; the lidar preset's when the surrogate has none)."""
+        from icpbench.attacks.sector import SectorAttack
+
+        cfg = getattr(icp, "config", None)
+        d_max = getattr(cfg, "d_max", None)
+        attack = SectorAttack(d_max=d_max) if d_max is not None else SectorAttack()
+        adv, _ = attack._perturb(batch, budget_m, surrogate=None, generator=None)
+        return adv
 
     def _ascend(self, icp: Target, batch: Batch, clean: torch.Tensor, adv: torch.Tensor,
                 budget_m: float, best: torch.Tensor, best_val: torch.Tensor

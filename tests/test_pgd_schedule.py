@@ -115,3 +115,30 @@ def test_implicit_surrogate_gradient_is_used(batch):
     out = atk.run(batch, 0.5, surrogate=PointToPlaneICP("lidar"), generator=0)
     assert math.isfinite(float(out.scans.sum()))
     assert float(out.stats["disp_max"].max()) <= 0.5 + 1e-9
+
+
+def test_sector_warm_start_never_below_the_sector_attack(batch):
+    """init="sector" starts the ascent from the analytic attack's output: its surrogate objective
+    is never below the sector attack's, the budget holds, and a bad init is refused."""
+    from icpbench.attacks.sector import SectorAttack
+
+    icp = PointToPlaneICP().with_max_iterations(25)
+    budget = 0.3
+    w = PGDAttack().w
+
+    def objective(adv):
+        with torch.no_grad():
+            reg = icp.register(adv.to(torch.float64), batch.maps, batch.T_init)
+            return weighted_pose_error(pose_error(reg.T, batch.T_gt.to(torch.float64)), w)
+
+    sec = SectorAttack(d_max=5.0).run(batch, budget, generator=0).scans
+    out = PGDAttack(steps=3, init="sector", icp_iterations=25).run(
+        batch, budget, surrogate=icp, generator=0)
+    assert out.stats["disp_max"].max() <= budget + 1e-9
+    assert torch.all(objective(out.scans) >= objective(sec) - 1e-9)
+    # the sector start is deterministic: no random stream enters it
+    again = PGDAttack(steps=3, init="sector", icp_iterations=25).run(
+        batch, budget, surrogate=icp, generator=123)
+    assert torch.allclose(out.scans, again.scans)
+    with pytest.raises(InputError):
+        PGDAttack(init="gradient")
