@@ -400,3 +400,26 @@ def test_one_garbage_mesh_among_several_skips_one_sample(tmp_path):
     with pytest.raises(InputError, match=r"no sample of dataset 'meshes' could be read \(1 "
                                          r"skipped\); the first, meshes/box2: mesh file .*box2.obj"):
         run(cfg, tmp_path / "o-only-bad", progress=False)
+
+
+# -- a KITTI sequence name with a leading zero stays text -------------------------------------------
+def test_dataset_param_sequence_05_stays_the_text_05(kitti_root, tmp_path):
+    from icpbench.cli import _kv
+
+    # YAML reads 05 as the number 5 (and 010 as the octal 8); a leading zero keeps the text
+    assert _kv("sequence=05", "--dataset-param") == ("sequence", "05")
+    assert _kv("sequence=00", "--dataset-param") == ("sequence", "00")
+    assert _kv("x=010", "--dataset-param") == ("x", "010")
+    assert _kv("x=0", "--dataset-param") == ("x", 0) and _kv("x=5", "--dataset-param") == ("x", 5)
+    assert _kv("town_seed=[1,2]", "--dataset-param") == ("town_seed", [1, 2])
+    (kitti_root / "sequences" / "00").rename(kitti_root / "sequences" / "05")
+    (kitti_root / "poses" / "00.txt").rename(kitti_root / "poses" / "05.txt")
+    params = {"root": str(kitti_root), "sequence": "05", "stride": 2, "window": 1, "n_points": 500,
+              "cache_dir": str(tmp_path / "cache")}
+    res = cli.invoke(app, ["run", "--dataset", "kitti", "--attacks", "none", "--budgets", "1",
+                           "--samples", "2", "--out", str(tmp_path / "o"), "--quiet",
+                           *[a for k, v in params.items() for a in ("--dataset-param", f"{k}={v}")]])
+    assert res.exit_code == 0, res.output  # before the fix: no folder sequences/5/velodyne
+    df = load_results(tmp_path / "o")
+    assert sorted(df["sample_id"]) == ["kitti/05/000000", "kitti/05/000002"]
+    assert read_manifest(tmp_path / "o")["dataset"]["sequence"] == "05"
