@@ -451,6 +451,17 @@ def train(
     icp_backprop: Annotated[str | None, typer.Option(
         help="unrolled (dICP, the paper) or implicit (implicit-function gradient of the final "
              "pose; beyond the paper).")] = None,
+    imitation: Annotated[float | None, typer.Option(
+        help="Weight of the imitation loss towards cached PGD answers (learning from the "
+             "oracle; beyond the paper). 0 = off.")] = None,
+    alpha: Annotated[float | None, typer.Option(
+        help="Weight of the adversarial loss (0 with --imitation: imitation alone, no ICP "
+             "in the training step).")] = None,
+    oracle_param: Annotated[list[str] | None, typer.Option(
+        help="Cached oracle KEY=VALUE (steps, init, step_size, icp_iterations, weights, seed).")]
+    = None,
+    oracle_cache: Annotated[str | None, typer.Option(
+        help="Folder of the oracle cache (default OUT/oracle; runs may share one).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
@@ -466,6 +477,9 @@ def train(
         for flag, x in (("--lr", lr), ("--max-minutes", max_minutes)):
             if x is not None and not (x > 0 and math.isfinite(x)):
                 raise typer.BadParameter(f"{flag} must be a positive number, got {x}")
+        for flag, x in (("--imitation", imitation), ("--alpha", alpha)):
+            if x is not None and not (x >= 0 and math.isfinite(x)):
+                raise typer.BadParameter(f"{flag} must be a number >= 0, got {x}")
         out_dir = _out_dir(out)
         over = {k: v for k, v in dict(
             weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
@@ -473,7 +487,10 @@ def train(
             device=device, threads=threads, max_minutes=max_minutes,
             strict=strict or None, adv_per_budget=adv_per_budget,
             init_checkpoint=init, icp_preset=icp_preset,
-            icp_backprop=icp_backprop, dataset=dataset).items() if v is not None}
+            icp_backprop=icp_backprop, dataset=dataset, imitation=imitation, alpha=alpha,
+            oracle_cache=oracle_cache).items() if v is not None}
+        if oracle_param:
+            over["oracle"] = _flat(oracle_param, "--oracle-param")
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets:

@@ -56,3 +56,23 @@ def reconstruction_loss(x: torch.Tensor, x_adv: torch.Tensor, budget_m: torch.Te
         lam = lam[:, None]
     shrunk = torch.clamp(d - lam, min=0.0)  # SoftShrink of a non-negative argument
     return (shrunk**2).mean(-1)
+
+
+def imitation_loss(x: torch.Tensor, x_adv: torch.Tensor, target_disp: torch.Tensor,
+                   budget_m: torch.Tensor | float) -> torch.Tensor:
+    """Beyond the paper: distance to an oracle's answer (learning from the oracle), per sample (B,).
+
+    ``mean_i ||(x_adv_i - x_i) - d_i||^2 / lambda^2``: the squared error of the displacement,
+    in units of the budget, so that budgets weigh alike and a model that moves every point to the
+    opposite side of its ball scores 4.
+
+    Args:
+        x, x_adv: (B, N, 3) clean and adversarial clouds (sensor frame, metres).
+        target_disp: (B, N, 3) the oracle's displacements (e.g. cached PGD answers).
+        budget_m: lambda, a float or a (B,) tensor.
+    """
+    lam = torch.as_tensor(budget_m, dtype=x_adv.dtype, device=x_adv.device)
+    if lam.ndim == 1:
+        lam = lam[:, None]
+    err = ((x_adv - x - target_disp.to(x_adv.dtype)) ** 2).sum(-1)  # (B, N)
+    return (err / lam**2).mean(-1)

@@ -35,10 +35,10 @@ from icpbench.core import registry
 from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.se3 import pose_error, pose_error_components
 from icpbench.core.types import Batch
-from icpbench.harness.progress import progress_bar
+from icpbench.harness.progress import RunProgress, progress_bar
 from icpbench.harness.results import write_json_atomic
 from icpbench.learning import distributed as ddp
-from icpbench.learning.losses import adversarial_loss, reconstruction_loss, weights
+from icpbench.learning.losses import adversarial_loss, imitation_loss, reconstruction_loss, weights
 from icpbench.learning.prior import sector_prior, sector_prior_batch
 from icpbench.targets.p2plane import PointToPlaneICP
 
@@ -71,6 +71,15 @@ class TrainConfig:
             trained without it, see :func:`~icpbench.learning.network.add_global_feature`).
         adv_per_budget: divide each sample's adversarial loss by its lambda, so that with several
             budgets the large ones (whose errors are larger) do not dominate the gradient.
+        imitation: beyond the paper: weight of the imitation loss (learning from the oracle,
+            :func:`~icpbench.learning.losses.imitation_loss`) towards cached PGD answers
+            (:mod:`icpbench.learning.oracle_cache`); 0 = the paper's losses only. With it, each
+            training scan keeps one budget (:func:`~icpbench.learning.oracle_cache.assigned_budget`)
+            instead of a random one per epoch; ``alpha = 0`` then trains on imitation alone
+            (no ICP in the training step).
+        oracle: settings of the cached oracle (:class:`~icpbench.learning.oracle_cache.OracleSpec`
+            fields, e.g. ``{"steps": 10, "init": "sector"}``).
+        oracle_cache: folder of the cache (None: ``<out>/oracle``); several runs may share one.
     """
 
     dataset: str = "lidar-sim"
@@ -99,6 +108,9 @@ class TrainConfig:
     strict: bool = False
     adv_per_budget: bool = False
     init_checkpoint: str | None = None
+    imitation: float = 0.0
+    oracle: dict[str, Any] = field(default_factory=dict)
+    oracle_cache: str | None = None
 
 
 #: Named presets: ``quick`` trains on 2 CPU cores within about an hour; ``paper`` uses the paper's
@@ -226,6 +238,9 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     geos = [model.precompute(torch.as_tensor(s.scan[None], dtype=torch.float32))
             for s in train_set]
     priors = [_prior(model, s) for s in train_set]
+    targets, fixed_lam = None, None
+    if cfg.imitation > 0:
+        targets, fixed_lam = _oracle_targets(cfg, out, train_set, progress, log)
     data_s = time.perf_counter() - t_data
     n_train = len({i for ids in ddp.all_gather([s.id for s in train_set], ctx) for i in ids})
     rng = np.random.default_rng(cfg.seed)
@@ -244,7 +259,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         order = rng.permutation(len(train_set))
         u = rng.random(len(train_set))
         model.train()
-        sums = {"loss": 0.0, "l_adv": 0.0, "l_rec": 0.0, "err": 0.0, "n": 0}
+        sums = {"loss": 0.0, "l_adv": 0.0, "l_rec": 0.0, "l_imit": 0.0, "err": 0.0, "n": 0}
         steps = range(0, len(order), cfg.batch_size)
         bar = progress_bar(total=len(steps), disable=not progress,
                            desc=f"epoch {epoch + 1}/{total_epochs} ({'pretrain' if pretrain else 'attack'})")
@@ -254,6 +269,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             x = batch.scans.to(torch.float32).to(device)
             geo = Geometry.stack([geos[i] for i in idx]).to(device)
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
+            if fixed_lam is not None:  # imitation: the budget the oracle answered at
+                lam = fixed_lam[torch.as_tensor(idx)]
             prior = None if priors[0] is None else torch.cat([priors[i] for i in idx]).to(device)
             x_adv = net(x, geo, lam.to(torch.float32).to(device) if model.needs_budget else None,
                         prior)
@@ -271,6 +288,11 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             else:
                 l_adv, err = torch.zeros((), dtype=torch.float64), float("nan")
             loss = alpha * l_adv + beta * l_rec
+            l_imit = torch.zeros((), dtype=torch.float64)
+            if targets is not None and not pretrain:
+                d = torch.cat([targets[i] for i in idx]).to(device)
+                l_imit = imitation_loss(x.double(), x_adv.double(), d, lam.to(device)).mean()
+                loss = loss + cfg.imitation * l_imit
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -278,10 +300,12 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             sums["loss"] += float(loss.detach())
             sums["l_adv"] += float(l_adv.detach())
             sums["l_rec"] += float(l_rec.detach())
+            sums["l_imit"] += float(l_imit.detach())
             sums["err"] += 0.0 if math.isnan(err) else err
             sums["n"] += 1
             bar.set_postfix(loss=f"{sums['loss'] / sums['n']:.4f}",
                             rec=f"{sums['l_rec'] / sums['n']:.4f}",
+                            imit=f"{sums['l_imit'] / sums['n']:.3f}",
                             err_xy=f"{sums['err'] / sums['n']:.3f}" if not pretrain else "-")
             bar.update(1)
         bar.close()
@@ -317,6 +341,36 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         save_checkpoint(load_checkpoint(ckpt).model, ckpt, card)
     ddp.barrier(ctx)
     return ddp.broadcast(card, ctx)
+
+
+def _oracle_targets(cfg: TrainConfig, out: Path, train_set: list[Any], progress: bool,
+                    log: Callable[[str], None] | None) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """Cached oracle displacements (1, N, 3) float32 per training scan (computing the missing
+    ones first) and each scan's budget (len(train_set),) float64."""
+    from icpbench.learning.oracle_cache import OracleCache, OracleSpec, assigned_budget
+
+    try:
+        spec = OracleSpec(**cfg.oracle)
+    except TypeError as exc:
+        raise InputError(f"bad oracle settings {cfg.oracle}: {exc}") from exc
+    cache = OracleCache(cfg.oracle_cache or out / "oracle", spec)
+    lam = [assigned_budget(s.id, cfg.budgets) for s in train_set]
+    missing = sum(not cache.path(s.id, b).exists() for s, b in zip(train_set, lam, strict=True))
+    bar = RunProgress(len(train_set), done=len(train_set) - missing, desc="oracle answers",
+                      unit="scan", enabled=progress)
+    t, seen = time.perf_counter(), [0]
+
+    def tick(done: int, total: int) -> None:
+        bar.update(done - seen[0])
+        seen[0] = done
+
+    disp = cache.ensure(train_set, lam, PointToPlaneICP(cfg.icp_preset), progress=tick)
+    bar.close()
+    if log is not None:
+        log(f"oracle answers for {len(train_set)} scans ready in {cache.root} "
+            f"({time.perf_counter() - t:.0f} s)")
+    return ([torch.as_tensor(d)[None] for d in disp],
+            torch.as_tensor(lam, dtype=torch.float64))
 
 
 def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
@@ -365,6 +419,8 @@ def _own_card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
         "strict_training": cfg.strict,
         "adv_per_budget": cfg.adv_per_budget,
         "init_checkpoint": cfg.init_checkpoint,
+        "imitation": ({"weight": cfg.imitation, "oracle": cfg.oracle}
+                      if cfg.imitation > 0 else None),
     }
 
 
