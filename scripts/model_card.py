@@ -2,6 +2,8 @@
 Table 1 that ``scripts/main_job.sh`` produced (``results/table1.csv``).
 
 Usage: ``python scripts/model_card.py [--dataset lidar-sim] [--table results/table1.csv]``.
+Another checkpoint folder names its own Table 1 and training script (``--table-title``,
+``--table-source``, ``--script``; see scripts/train_lidar_varied.sh).
 Nothing here is typed by hand: training settings, wall times and held-out numbers come from the
 cards that ``icpbench train`` wrote, the Table 1 cells from the CSV.
 """
@@ -61,6 +63,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--dataset", default="lidar-sim")
     ap.add_argument("--table", default=str(ROOT / "results" / "table1.csv"))
+    ap.add_argument("--table-title", default="`results/table1.csv`, target p2plane, lidar-sim test passes")
+    ap.add_argument("--table-source", default="the Table 1 of `scripts/main_job.sh`")
+    ap.add_argument("--script", default="scripts/train_lidar.sh", help="the training script named")
     args = ap.parse_args()
     d = ROOT / "icpbench" / "checkpoints" / args.dataset
     cards = sorted(d.glob("generator*.json"))
@@ -68,14 +73,14 @@ def main() -> None:
         raise SystemExit(f"no generator checkpoints in {d}")
     lines = [f"# Generator checkpoints for `{args.dataset}`", "",
              "Written by `python scripts/model_card.py` from the JSON cards beside the weights and "
-             "from the Table 1 of `scripts/main_job.sh`. Training commands: `scripts/train_lidar.sh`.",
+             f"from {args.table_source}. Training commands: `{args.script}`.",
              "The attack loads `generator-l<λ>.pt` when it exists, else `generator.pt`.", ""]
     for c in cards:
         lines += describe(c)
     table = Path(args.table)
     if table.is_file():
         t = pd.read_csv(table)
-        lines += ["## Table 1 (`results/table1.csv`, target p2plane, lidar-sim test passes)", "",
+        lines += [f"## Table 1 ({args.table_title})", "",
                   t.to_markdown(index=False), ""]
     (d / "MODEL_CARD.md").write_text("\n".join(lines))
     print(f"wrote {d / 'MODEL_CARD.md'}")
