@@ -2,19 +2,22 @@
 
 The generator (Zhang et al., ICRA 2025, §III-B; PointNet++ by Qi et al., NeurIPS 2017) only needs
 *indices* and *interpolation weights* that depend on the clean scan X, never on the perturbed one.
-They are computed here once per sample, outside autograd, with a C++ farthest-point sampler
-(``fpsample``) and small_gicp KD-trees (the same neighbours as SciPy's ``cKDTree``, 1.7x faster
-for the seven kNN queries of a 10,000-point scan: 42 vs 72 ms, docs/performance.md), so the
-training loop only gathers and runs shared MLPs.
+They are computed here once per sample, outside autograd, with Open3D's farthest-point sampler
+(C++) and small_gicp KD-trees (the same neighbours as SciPy's ``cKDTree``, 1.7x faster for the
+seven kNN queries of a 10,000-point scan: 42 vs 72 ms, docs/performance.md), so the training loop
+only gathers and runs shared MLPs.
 
 Levels and index spaces (``n1 = N``, ``n_k = floor(N / a_k)`` with ``(a_2, a_3, a_4) = (a, b, c)``):
 
 * level 1: all N points in their original order (identity centroids);
-* levels 2-4: the first ``n_2``, ``n_3``, ``n_4`` entries of ONE farthest-point sampling (FPS) of
-  ``n_2`` points. FPS restarted on an FPS prefix with the same start point reproduces that prefix,
-  so the prefixes are exactly nested FPS (docs/methods.md, "Generator design"). Level-k points are
-  ``X[fps_idx[:n_k]]`` and level-k features are stored in that order, so an index into level k is
-  a position in ``fps_idx``;
+* levels 2-4: the first ``n_2``, ``n_3``, ``n_4`` points of ONE farthest-point sampling (FPS)
+  sequence, so level 4 is a subset of level 3 and level 3 of level 2. ``fps_idx`` lists the
+  level-2 points so that every level is a prefix: the FPS start, the rest of level 4, then the
+  points of level 3 not in level 4, then those of level 2 not in level 3, each part in increasing
+  scan index. Level-k points are ``X[fps_idx[:n_k]]`` and level-k features are stored in that
+  order, so an index into level k is a position in ``fps_idx``. The order inside a part is not
+  the order in which FPS picked the points: the network is invariant to it (kNN groups, max
+  pooling and interpolation do not see it), so it changes outputs only by float rounding;
 * ``groups[0]`` (B, N, K): K nearest level-1 points of every point (itself included);
   ``groups[k-1]`` (B, n_k, K): K nearest level-(k-1) points of every level-k point, as indices
   into level k-1 (level 1: into the N scan points);
@@ -25,12 +28,23 @@ Levels and index spaces (``n1 = N``, ``n_k = floor(N / a_k)`` with ``(a_2, a_3, 
   *squared* distance; the paper's wording "inversely proportional to their distances" is also
   available as ``p = 1``.
 
+Exact FPS (``fps="exact"``) is vanilla FPS (Eldar et al., ICPR 1994) from Open3D's
+``farthest_point_down_sample`` in double precision: once on the scan for level 2, then on level 2
+for level 3 and on level 3 for level 4 (FPS restricted to a set that contains the first m picks
+makes the same first m picks, because each pick is the farthest point of the whole scan and so of
+any subset holding it). It returns the level *sets* of fpsample's float32 vanilla FPS
+(:func:`farthest_point_indices`, used before; the shipped models were trained with it): identical
+sets on all 50 lidar-sim scans compared (25 test, 25 train), at 40 instead of 80 ms for a
+10,000-point scan (docs/performance.md). The two can differ only where two candidates' distances
+tie within float32 rounding.
+
 Determinism and permutation equivariance: nothing is random. The FPS start is the point farthest
 from the centroid (ties, within 1e-12 relative, broken by the lexicographically largest
-coordinates), so permuting the input points permutes level 1 and leaves the level 2-4 point
-sequences unchanged. Exact ties inside FPS or kNN (duplicate points, symmetric layouts) are broken
-by index order by the libraries, so equivariance holds for clouds in general position. The fast
-``fps="bucket"`` sampler (QuickFPS, ``fpsample.bucket_fps_kdline_sampling``) is 5-15x faster but
+coordinates), so permuting the input points permutes level 1 and leaves the level 2-4 point sets
+unchanged (their order inside a part follows the scan index). Exact ties inside FPS or kNN
+(duplicate points, symmetric layouts) are broken by index order by the libraries, so equivariance
+holds for clouds in general position. The fast ``fps="bucket"`` sampler (QuickFPS,
+``fpsample.bucket_fps_kdline_sampling``; levels are prefixes of its sequence) is 5-15x faster but
 approximate: it picks a different set (56-73 % overlap with exact FPS in our tests) and is NOT
 permutation-equivariant.
 """
@@ -220,6 +234,34 @@ def farthest_point_indices(points: np.ndarray, n_samples: int, method: FPSMethod
     return np.asarray(idx, dtype=np.int64)
 
 
+def _open3d_fps(points: np.ndarray, n_samples: int, start: int) -> np.ndarray:
+    """The set of ``n_samples`` vanilla-FPS picks from ``points`` (N, 3) starting at ``start``, as
+    increasing indices (Open3D returns the picked points in scan order; each point carries its
+    index in the normal channel, so duplicates map back exactly)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    tag = np.zeros((points.shape[0], 3))
+    tag[:, 0] = np.arange(points.shape[0])
+    pc.normals = o3d.utility.Vector3dVector(tag)
+    picked = pc.farthest_point_down_sample(n_samples, start_index=start)
+    return np.asarray(picked.normals)[:, 0].astype(np.int64)
+
+
+def nested_fps_levels(points: np.ndarray, sizes: tuple[int, int, int]) -> np.ndarray:
+    """Level-2 indices (int64, (n2,)) into ``points`` (N, 3) for level sizes (n2, n3, n4): the first
+    n2 / n3 / n4 vanilla-FPS picks from :func:`fps_start_index` are ``[:n2]`` / ``[:n3]`` /
+    ``[:n4]`` (module docstring: the start first, then each level's own points in index order)."""
+    n2, n3, n4 = sizes
+    start = fps_start_index(points)
+    s2 = _open3d_fps(points, n2, start)
+    s3 = s2[_open3d_fps(points[s2], n3, int(np.searchsorted(s2, start)))]
+    s4 = s3[_open3d_fps(points[s3], n4, int(np.searchsorted(s3, start)))]
+    parts = [np.array([start]), s4[s4 != start], np.setdiff1d(s3, s4, assume_unique=True),
+             np.setdiff1d(s2, s3, assume_unique=True)]
+    return np.concatenate(parts).astype(np.int64)
+
+
 def _knn(tree: Any, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Distances and indices (Q, k) of the k nearest tree points of each query (a small_gicp
     ``KdTree``; neighbours in order of distance)."""
@@ -256,13 +298,17 @@ def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig |
             f"a scan of {N} points gives levels of ({N}, {n2}, {n3}, {n4}) points with a, b, c = "
             f"{cfg.a}, {cfg.b}, {cfg.c}; K = {cfg.k} needs n3 >= K and k_interp = {cfg.k_interp} "
             f"needs n4 >= k_interp: use at least {cfg.min_points()} points or smaller a, b, c, K")
-    fps = farthest_point_indices(x, n2, cfg.fps)
+    fps = (nested_fps_levels(x, (n2, n3, n4)) if cfg.fps == "exact"
+           else farthest_point_indices(x, n2, cfg.fps))
     lvl = [x, x[fps], x[fps[:n3]], x[fps[:n4]]]
     import small_gicp  # on first use, as in icpbench.core.mapindex
 
     trees = [small_gicp.KdTree(np.ascontiguousarray(p)) for p in lvl]
     groups = [_knn(trees[0], lvl[0], cfg.k)[1]]
-    for k in (1, 2, 3):  # level k+1 centroids grouped over level k
+    # level-2 centroids are scan points grouped over the scan points: the same queries against
+    # the same tree as their rows of groups[0]
+    groups.append(groups[0][fps])
+    for k in (2, 3):  # level k+1 centroids grouped over level k
         groups.append(_knn(trees[k - 1], lvl[k], cfg.k)[1])
     interp_idx, interp_w = [], []
     for k in (1, 2, 3):
