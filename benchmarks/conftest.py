@@ -27,3 +27,9 @@ def pytest_terminal_summary(terminalreporter) -> None:
         extra = f"  ({r['scans_per_s']:.2f} scans/s)" if "scans_per_s" in r else ""
         tr.write_line(f"{case:<28} {phase:<16} {1e3 * r['ours_s']:>9.1f} {1e3 * r['open3d_s']:>10.1f} "
                       f"{r['ratio']:>7.2f}{extra}")
+    base = next((r for (c, ph), r in RATIOS.items() if ph == "train-1proc-no-retain"), None)
+    if base is not None:
+        tr.write_line("training throughput relative to train-1proc-no-retain (same run):")
+        for (_case, phase), r in RATIOS.items():
+            if "scans_per_s" in r and phase.startswith("train"):
+                tr.write_line(f"  {phase:<28} {r['scans_per_s'] / base['scans_per_s']:.2f}x")

@@ -173,6 +173,9 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
     ``train_state.pt`` (optimiser, scheduler, epoch), ``train_config.json``, ``history.csv``.
     """
     torch.set_num_threads(cfg.threads)
+    from icpbench.learning.allocator import retain_for_training
+
+    retain_for_training()  # keep freed memory: faster steps (docs/performance.md, section 3)
     ctx, device = ddp.setup(cfg.device)  # torchrun: process group + this rank's device
     try:
         return _train(cfg, Path(out_dir), ctx, device, progress=progress and ctx.is_main,
