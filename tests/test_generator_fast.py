@@ -82,3 +82,22 @@ def test_shipped_lidar_generator_output_is_unchanged():
         ref = model.decode(x, geo, model.encode(x, geo, prior), budget, prior=prior)
     assert float((ref - x).norm(dim=-1).max()) > 1.0
     torch.testing.assert_close(got, ref, rtol=0, atol=1e-4)
+
+
+def test_fast_path_with_zero_norm_scales():
+    """A GroupNorm channel with weight 0 outputs the constant relu(bias): the folded clamp of the
+    fast path must keep that constant (its threshold -b/a does not exist)."""
+    G = _randomised(generator_config("lidar", output="bounded", conditioned=True), seed=5)
+    with torch.no_grad():
+        for n in G.modules():
+            if isinstance(n, torch.nn.GroupNorm):
+                n.weight[::3] = 0.0
+                n.bias[::3] = torch.linspace(-1.0, 1.0, n.bias[::3].numel())
+    x = torch.as_tensor(np.stack([_cloud(4, 1_200)]))
+    geo, budget = G.precompute(x), torch.tensor([2.0])
+    with torch.no_grad():
+        got = G(x, geo, budget)
+        ref = G.decode(x, geo, G.encode(x, geo), budget)
+    scale = float((ref - x).abs().max())
+    assert scale > 1e-2
+    torch.testing.assert_close(got, ref, rtol=0, atol=2e-5 * max(scale, 1.0))
