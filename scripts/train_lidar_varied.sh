@@ -11,11 +11,17 @@
 # and the hdl64 sensor, on which scripts/unseen_town.sh measures Table 1, are in none of them. The
 # held-out numbers in the card come from the first 16 scans of the same mix's test passes (1-2).
 #
-# Cost: generating the 144 + 16 scans with their submaps took about 1 s of CPU per scan; training
-# took the wall time in the checkpoint's card (`train_wall_s`) on a 2-core x86 VM, one torch thread
-# (OMP_NUM_THREADS=1), shared with other jobs.
-# Afterwards: CHECKPOINT=icpbench/checkpoints/lidar-sim-varied/generator.pt
-#   OUT=results/lidar-sim-unseen/varied-model bash scripts/unseen_town.sh
+# Cost (2-core x86 VM shared with other jobs, one torch thread, OMP_NUM_THREADS=1): the whole script
+# took 15.5 min of wall time (8.5 min user + 1.8 min system CPU): generating the 144 + 16 scans with
+# their submaps about 1 s of CPU per scan, the index precompute 133 s (`data_prep_s` in the card),
+# the epoch 521 s (`train_wall_s`), then the held-out evaluation.
+# Afterwards (results/lidar-sim-unseen/README.md; the card's header in MODEL_CARD.md):
+#   CHECKPOINT=icpbench/checkpoints/lidar-sim-varied/generator.pt \
+#     OUT=results/lidar-sim-unseen/varied-model EXECUTOR=local bash scripts/unseen_town.sh
+#   python scripts/model_card.py --dataset lidar-sim-varied --script scripts/train_lidar_varied.sh \
+#     --table results/lidar-sim-unseen/varied-model/table1.csv \
+#     --table-source "the unseen-town Table 1 of scripts/unseen_town.sh" \
+#     --table-title "results/lidar-sim-unseen/varied-model/table1.csv: town 101, hdl64, 48 test scans"
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUNS=${RUNS:-runs}
