@@ -41,9 +41,10 @@ def test_unprojected_output_stays_within_the_budget(batch, name, weights):
     assert float(disp.mean()) > 0.5 * LAM  # and it does attack: most points move far
 
 
-def test_xy_card_records_the_fine_tune_on_256_objects():
-    card = load_checkpoint(CK / "generator.pt").card
+@pytest.mark.parametrize("name", ["generator", "x-only", "theta-only"])
+def test_cards_record_the_fine_tune_on_256_objects(name):
+    card = load_checkpoint(CK / f"{name}.pt").card
     assert card["data"]["samples"] == 256 and card["epochs_done"] == 2
-    assert card["init_card"]["data"]["samples"] == 160 and card["init_card"]["epochs_done"] == 3
+    assert card["init_card"]["data"]["samples"] == 160
     assert card["train_wall_s_total"] == pytest.approx(card["train_wall_s"]
                                                        + card["init_card"]["train_wall_s"], abs=1)
