@@ -92,7 +92,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
             names = sub["config"]
             pick = names.str.startswith(fam.split("-")[0])
             pick &= names.str.endswith("-sector") == fam.endswith("-sector")
-            f = sub[pick].sort_values("attack_s")
+            # in the order of CONFIGS (more steps), not of the measured time, which is noisy
+            f = sub[pick].sort_values("config", key=lambda c: c.map(list(CONFIGS).index))
             ax.plot(f["attack_s"], f["err_all_m"], style, label=fam)
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
