@@ -131,7 +131,7 @@ class PGDAttack(Attack):
             best_val = self._objective(icp, batch, clean)
         for _ in range(self.restarts):
             if self.init == "sector":
-                adv = self._sector_start(batch, budget_m, icp).to(torch.float64)
+                adv = self.sector_start(batch, budget_m, icp).to(torch.float64)
             elif self.random_start:
                 d = generator.randn(*clean.shape[1:], dtype=torch.float64)  # per-sample streams
                 d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
@@ -143,7 +143,7 @@ class PGDAttack(Attack):
         return best.to(batch.scans.dtype)
 
     @staticmethod
-    def _sector_start(batch: Batch, budget_m: float, icp: Target) -> torch.Tensor:
+    def sector_start(batch: Batch, budget_m: float, icp: Target) -> torch.Tensor:
         """The sector attack's adversarial scans (B, N, 3) with the surrogate's association gate
         ``d_max`` (metres; the lidar preset's when the surrogate has none)."""
         from icpbench.attacks.sector import SectorAttack

@@ -41,6 +41,13 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "pgd-10-sector": ("pgd", ["pgd.steps=10", "pgd.init=sector"]),
 }
 
+#: the lines of the plot: configurations that differ only in their number of steps.
+FAMILIES: dict[str, list[str]] = {
+    "generator": ["generator", "generator+1", "generator+3", "generator+10"],
+    "pgd": ["pgd-5", "pgd-10", "pgd-30"],
+    "pgd-sector": ["pgd-5-sector", "pgd-10-sector"],
+}
+
 
 def run_config(name: str, out: Path, samples: int, budgets: str, extra: list[str],
                cli: list[str]) -> Path:
@@ -89,11 +96,9 @@ def plot(res: pd.DataFrame, path: Path) -> None:
     for ax, lam in zip(axes[0], budgets, strict=True):
         sub = res[res["budget_m"] == lam]
         for fam, style in (("generator", "o-"), ("pgd", "s--"), ("pgd-sector", "d:")):
-            names = sub["config"]
-            pick = names.str.startswith(fam.split("-")[0])
-            pick &= names.str.endswith("-sector") == fam.endswith("-sector")
-            # in the order of CONFIGS (more steps), not of the measured time, which is noisy
-            f = sub[pick].sort_values("config", key=lambda c: c.map(list(CONFIGS).index))
+            # each family in the order of CONFIGS (more steps), not of the noisy measured time
+            f = sub[sub["config"].isin(FAMILIES[fam])]
+            f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))
             ax.plot(f["attack_s"], f["err_all_m"], style, label=fam)
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),

@@ -130,7 +130,7 @@ class OracleCache:
                 clean = batch.scans.to(torch.float64)
                 with torch.no_grad():
                     objective = _objective(icp, batch, out.scans.to(torch.float64), w)
-                    start = (pgd._sector_start(batch, lam, icp) if s.init == "sector" else clean)
+                    start = (pgd.sector_start(batch, lam, icp) if s.init == "sector" else clean)
                     start_obj = _objective(icp, batch, start.to(torch.float64), w)
                 disp = (out.scans.to(torch.float64) - clean).numpy().astype(np.float32)
                 for j, i in enumerate(chunk):
