@@ -140,16 +140,22 @@ class GeneratorAttack(Attack):
         budget = (torch.full((x.shape[0],), float(budget_m), device=self.device)
                   if model.needs_budget else None)
         prior = None
-        if model.needs_prior:  # analytic channels from the map and the true pose (sector model)
-            from icpbench.learning.prior import sector_prior_batch
+        if model.needs_prior:  # analytic channels from the map and the true pose (prior models)
+            from icpbench.learning.prior import prior_channels
 
-            prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps,
-                                       model.config.prior_dmax).to(self.device)
+            icp = surrogate
+            if icp is None and model.config.prior == "sector-iter":
+                from icpbench.targets.p2plane import PointToPlaneICP
+
+                icp = PointToPlaneICP()
+            prior = prior_channels(model.config, batch, torch.full((x.shape[0],), float(budget_m)),
+                                   icp)
+            prior = prior.to(self.device)
         adv = model(x, geo, budget, prior)
         # the network runs in float32; add its displacement to the scans in their own precision, so
         # that rounding the input to float32 (~2e-6 m at 40 m) does not count as a displacement
         adv = batch.scans + (adv - x).to("cpu", batch.scans.dtype)
-        if lg.card.get("strict_training") or lg.config.output == "bounded":
+        if lg.card.get("strict_training") or lg.config.output in ("bounded", "sphere", "ball"):
             # strict training: the model was trained behind this projection, so apply it here too;
             # bounded output: |displacement| < lambda already, the projection only removes float32
             # rounding at saturation (|u| = 1.0 in float32)

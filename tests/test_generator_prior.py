@@ -53,6 +53,38 @@ def test_untrained_prior_model_is_the_scaled_sector_attack(batch):
     torch.testing.assert_close(out, expect, atol=1e-5, rtol=0)
 
 
+def test_untrained_sphere_prior_model_is_the_sector_attack(batch):
+    """Sphere output, zero last layer: every associated point moves by exactly lambda along the
+    sector direction (the sector attack itself), unassociated points stay put."""
+    cfg = generator_config("objects", output="sphere", prior="sector")
+    g = Generator(cfg).eval()
+    x = batch.scans.float()
+    pr = sector_prior_batch(batch.scans, batch.T_gt, batch.maps)
+    lam = torch.tensor([0.3, 0.7])
+    with torch.no_grad():
+        out = g(x, g.precompute(x), lam, pr)
+    torch.testing.assert_close(out, x + lam[:, None, None] * pr[..., 0:3], atol=1e-5, rtol=0)
+
+
+def test_sphere_output_spends_the_whole_budget_and_has_gradients(batch):
+    """A trained (non-zero) sphere head moves every point by lambda (to 1e-4 of it) and the
+    direction still receives finite gradients."""
+    torch.manual_seed(0)
+    g = Generator(generator_config("objects", output="sphere", conditioned=True))
+    with torch.no_grad():
+        g.head[-1].weight.normal_(0, 0.5)
+        g.head[-1].bias.fill_(0.3)
+    x = batch.scans.float()
+    lam = torch.tensor([0.3, 0.7])
+    out = g(x, g.precompute(x), lam)
+    d = torch.linalg.norm(out - x, dim=-1)
+    torch.testing.assert_close(d, lam[:, None].expand_as(d), atol=1e-4 * 0.7, rtol=0)
+    assert (d <= lam[:, None] * (1 + 1e-5)).all()  # float32 rounding only
+    ((out - x) * torch.randn_like(x)).sum().backward()
+    grad = g.head[-1].weight.grad
+    assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
 def test_add_prior_keeps_the_trained_function_and_learns(batch):
     """A widened model with zero prior channels gives the original output; the gain and the new
     input weights receive gradients."""

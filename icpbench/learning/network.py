@@ -84,8 +84,13 @@ from icpbench.learning.geometry import Geometry, GeometryConfig, compute_geometr
 from icpbench.learning.prior import PRIOR_CHANNELS
 
 Norm = Literal["group", "batch", "none"]
-Output = Literal["residual", "absolute", "bounded"]
-Prior = Literal["none", "sector"]
+Output = Literal["residual", "absolute", "bounded", "sphere", "ball"]
+Prior = Literal["none", "sector", "sector-iter"]
+
+#: Softening of the ``"sphere"`` output's normalisation (dimensionless, in units of the head's
+#: output): ``u = h / sqrt(|h|^2 + eps^2)``, so 1 - |u| < 5e-5 once |h| > 0.1 and the gradient
+#: stays finite at h = 0.
+SPHERE_EPS = 1e-3
 
 #: Shared-MLP widths of the four SA levels and of the head (paper Fig. 2 / LG-GAN).
 SA_WIDTHS: tuple[tuple[int, ...], ...] = ((32, 32, 64), (64, 64, 128), (128, 128, 256), (256, 256, 512))
@@ -117,6 +122,10 @@ class GeneratorConfig:
         prior_gain: initial value of the learnable gain of the prior direction (dimensionless).
         prior_dmax: association gate of the prior channels (the ICP's d_max: 5 m for lidar, 0.3
             for unit-scale objects).
+            ``prior="sector-iter"`` (beyond the paper): the direction channels come from the
+            iterated analytic attack instead (:func:`icpbench.learning.prior.iterated_prior_batch`,
+            per budget; the model then needs the surrogate ICP at run time).
+        prior_iterations, prior_step: iterations and step (fraction of lambda) of that attack.
     """
 
     a: float = 2.0
@@ -137,6 +146,8 @@ class GeneratorConfig:
     prior: Prior = "none"
     prior_gain: float = 2.0
     prior_dmax: float = 5.0
+    prior_iterations: int = 8
+    prior_step: float = 0.5
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -158,8 +169,12 @@ class GeneratorConfig:
         for name in ("scale_m", "offset_scale_m", "budget_scale_m", "prior_dmax"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
-        if self.prior != "none" and self.output != "bounded":
-            raise InputError(f"prior={self.prior!r} needs output='bounded', got {self.output!r}")
+        if self.prior_iterations < 0 or not 0 < self.prior_step <= 2:
+            raise InputError(f"prior_iterations must be >= 0 and prior_step in (0, 2], got "
+                             f"{self.prior_iterations} and {self.prior_step}")
+        if self.prior != "none" and self.output not in ("bounded", "sphere", "ball"):
+            raise InputError(f"prior={self.prior!r} needs output='bounded', 'sphere' or 'ball', got "
+                             f"{self.output!r}")
         if self.norm_groups < 1 or any(w % self.norm_groups for w in (32, FP_WIDTH)):
             raise InputError(f"norm_groups must divide 32, got {self.norm_groups}")
         _ = self.geometry  # validates a, b, c, k, k_interp, idw_power, fps
@@ -205,7 +220,7 @@ class GeneratorConfig:
 #: Config fields introduced after the first shipped checkpoints, with the value that reproduces
 #: the behaviour of configs written before them.
 _ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0,
-                                  "prior_dmax": 5.0}
+                                  "prior_dmax": 5.0, "prior_iterations": 8, "prior_step": 0.5}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).
@@ -361,7 +376,7 @@ class Generator(nn.Module):
         dims = (FP_WIDTH * 3 + SA_WIDTHS[0][-1] + 3 + n_prior, *HEAD_WIDTHS, 3)
         self.head = nn.ModuleList([nn.Conv1d(i + extra, o, 1)
                                    for i, o in zip(dims[:-1], dims[1:], strict=True)])
-        if cfg.output in ("residual", "bounded"):
+        if cfg.output in ("residual", "bounded", "sphere", "ball"):
             nn.init.zeros_(self.head[-1].weight)
             nn.init.zeros_(self.head[-1].bias)
         #: scan descriptor (B, 512) -> (B, 256) added to the first head layer (global_feature only)
@@ -402,7 +417,7 @@ class Generator(nn.Module):
     @property
     def needs_budget(self) -> bool:
         """Whether :meth:`forward` takes the budget (conditioned or bounded models)."""
-        return self.config.conditioned or self.config.output == "bounded"
+        return self.config.conditioned or self.config.output in ("bounded", "sphere", "ball")
 
     def _check_budget(self, budget: Tensor | None, B: int) -> None:
         if self.needs_budget:
@@ -508,6 +523,20 @@ class Generator(nn.Module):
             u = out * (torch.tanh(r) / r)  # |u| < 1, ~ out near 0
             lam = budget.to(device=out.device, dtype=out.dtype)[:, None, None]
             return x + (lam * u).to(x.dtype)
+        if self.config.output == "ball":
+            assert budget is not None
+            # hard projection onto the unit ball: inside it the output is used as is, so a prior
+            # model with gain 1 and a zero head returns its prior's displacement exactly
+            r = torch.sqrt((out * out).sum(-1, keepdim=True) + 1e-12)
+            lam = budget.to(device=out.device, dtype=out.dtype)[:, None, None]
+            return x + (lam * (out / torch.clamp(r, min=1.0))).to(x.dtype)
+        if self.config.output == "sphere":
+            assert budget is not None
+            # |u| = 1 up to SPHERE_EPS: every point spends the whole budget, only directions are
+            # learned (a zero output, e.g. an unassociated point of an untrained prior model, stays)
+            r = torch.sqrt((out * out).sum(-1, keepdim=True) + SPHERE_EPS**2)
+            lam = budget.to(device=out.device, dtype=out.dtype)[:, None, None]
+            return x + (lam * (out / r)).to(x.dtype)
         return (self.config.scale_m * out).to(x.dtype)
 
     def forward(self, x: Tensor, geo: Geometry, budget: Tensor | None = None,

@@ -19,9 +19,17 @@ channels    shape  meaning
 
 The attacker is thus assumed to know the map and the true pose, the same knowledge the sector
 baseline and the PGD oracle use. The channels do not depend on the budget.
+
+``GeneratorConfig.prior = "sector-iter"`` (beyond the paper) replaces channels 0:3 by the
+displacement of the iterated analytic attack (:mod:`icpbench.attacks.sector_iter`) divided by the
+budget (|.| <= 1): the sector step re-linearised where the surrogate ICP lands, which depends on
+lambda and on the initial guess, so these channels are computed per budget
+(:func:`iterated_prior_batch`); channels 3:8 stay the one-step ones above.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,6 +37,8 @@ import torch
 from icpbench.analysis import sector_math as sector
 from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
+from icpbench.core.types import Batch
+from icpbench.targets.base import Target
 
 #: Number of prior channels per point (see the module docstring).
 PRIOR_CHANNELS = 8
@@ -85,3 +95,52 @@ def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIn
     T = T_gt.detach().to("cpu", torch.float64).numpy()
     return torch.as_tensor(np.stack([sector_prior(s[b], T[b], maps[b], d_max)
                                      for b in range(len(maps))]))
+
+
+def iterated_prior_batch(batch: Batch, budget_m: torch.Tensor, icp: Target, d_max: float = PRIOR_DMAX_M,
+                         iterations: int = 8, step_size: float = 0.5) -> torch.Tensor:
+    """Prior channels (B, N, 8) float32 of ``prior="sector-iter"`` models (module docstring).
+
+    Args:
+        batch: clean scans (B, N, 3) (sensor frame) with their maps, true poses and initial guesses.
+        budget_m: (B,) budget of each sample (metres).
+        icp: the surrogate ICP that locates the attacked pose (forward only).
+        d_max: association gate (metres).
+        iterations, step_size: of :class:`~icpbench.attacks.sector_iter.SectorIterAttack`.
+    """
+    from icpbench.attacks.sector_iter import SectorIterAttack
+
+    lam = torch.as_tensor(budget_m, dtype=torch.float64).reshape(-1)
+    if lam.shape != (len(batch),) or not bool(torch.all(lam > 0)):
+        raise InputError(f"need one budget > 0 per sample, got {tuple(lam.shape)} for {len(batch)}")
+    out = sector_prior_batch(batch.scans, batch.T_gt, batch.maps, d_max)
+    attack = SectorIterAttack(iterations=iterations, step_size=step_size, d_max=d_max)
+    for value in torch.unique(lam).tolist():
+        idx = torch.nonzero(lam == value)[:, 0]
+        sub = batch if idx.numel() == len(batch) else Batch.from_samples(
+            [batch.samples[i] for i in idx.tolist()], dtype=batch.scans.dtype,
+            maps=[batch.maps[i] for i in idx.tolist()])
+        adv = attack.run(sub, value, surrogate=icp, generator=0).scans
+        out[idx, :, 0:3] = ((adv.to(torch.float64) - sub.scans.to(torch.float64)) / value
+                            ).to(torch.float32)
+    return out
+
+
+def prior_channels(config: Any, batch: Batch, budget_m: torch.Tensor | None,
+                   icp: Target | None = None) -> torch.Tensor | None:
+    """The prior channels (B, N, 8) a generator with ``config`` (a
+    :class:`~icpbench.learning.network.GeneratorConfig`) takes for ``batch``, or None
+    (``prior="none"``). ``budget_m`` (B,) metres and the surrogate ``icp`` are needed by
+    ``prior="sector-iter"`` only.
+
+    Raises:
+        InputError: ``sector-iter`` without a budget or a surrogate.
+    """
+    if config.prior == "none":
+        return None
+    if config.prior == "sector":
+        return sector_prior_batch(batch.scans, batch.T_gt, batch.maps, config.prior_dmax)
+    if budget_m is None or icp is None:
+        raise InputError("a generator with prior='sector-iter' needs the budget and a surrogate ICP")
+    return iterated_prior_batch(batch, budget_m, icp, config.prior_dmax, config.prior_iterations,
+                                config.prior_step)

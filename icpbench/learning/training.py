@@ -39,7 +39,7 @@ from icpbench.harness.progress import RunProgress, progress_bar
 from icpbench.harness.results import write_json_atomic
 from icpbench.learning import distributed as ddp
 from icpbench.learning.losses import adversarial_loss, imitation_loss, reconstruction_loss, weights
-from icpbench.learning.prior import sector_prior, sector_prior_batch
+from icpbench.learning.prior import prior_channels, sector_prior
 from icpbench.targets.p2plane import PointToPlaneICP
 
 
@@ -241,6 +241,8 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     geos = [model.precompute(torch.as_tensor(s.scan[None], dtype=torch.float32))
             for s in train_set]
     priors = [_prior(model, s) for s in train_set]
+    iter_priors: dict[tuple[int, float], torch.Tensor] = {}  # prior="sector-iter": per (scan, λ)
+    prior_icp = PointToPlaneICP(cfg.icp_preset)  # forward only: the plain preset, as at run time
     targets, fixed_lam = None, None
     if cfg.imitation > 0:
         targets, fixed_lam = _oracle_targets(cfg, out, train_set, progress, log)
@@ -274,7 +276,12 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
             if fixed_lam is not None:  # imitation: the budget the oracle answered at
                 lam = fixed_lam[torch.as_tensor(idx)]
-            prior = None if priors[0] is None else torch.cat([priors[i] for i in idx]).to(device)
+            if model.needs_prior and model.config.prior == "sector-iter":  # depends on lambda
+                prior = torch.cat([_iterated_prior(model, train_set[i], float(v), prior_icp,
+                                                   iter_priors, int(i))
+                                   for i, v in zip(idx, lam.tolist(), strict=True)]).to(device)
+            else:
+                prior = None if priors[0] is None else torch.cat([priors[i] for i in idx]).to(device)
             x_adv = net(x, geo, lam.to(torch.float32).to(device) if model.needs_budget else None,
                         prior)
             if cfg.strict:
@@ -379,13 +386,26 @@ def _oracle_targets(cfg: TrainConfig, out: Path, train_set: list[Any], progress:
 def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
     """Prior channels (1, N, 8) of one training sample for prior models (else None); computed
     once per scan, like the index precompute."""
-    if not model.needs_prior:
+    if not model.needs_prior or model.config.prior == "sector-iter":
         return None
     from icpbench.core.mapindex import MapIndex
 
     return torch.as_tensor(sector_prior(sample.scan, sample.T_gt,
                                         MapIndex(sample.map, sample.map_normals),
                                         model.config.prior_dmax))[None]
+
+
+def _iterated_prior(model: torch.nn.Module, sample: Any, budget_m: float, icp: Any,
+                    cache: dict[tuple[int, float], torch.Tensor], key: int) -> torch.Tensor:
+    """Prior channels (1, N, 8) of ``prior="sector-iter"`` for one training scan at one budget
+    (metres), computed on first use with the training surrogate ``icp`` and kept in ``cache``."""
+    from icpbench.learning.prior import prior_channels
+
+    k = (key, budget_m)
+    if k not in cache:
+        cache[k] = prior_channels(model.config, Batch.from_samples([sample]),
+                                  torch.tensor([budget_m]), icp)
+    return cache[k]
 
 
 def _card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
@@ -443,10 +463,9 @@ def evaluate(cfg: TrainConfig, ckpt: Path, *, progress: bool = False) -> dict[st
             x = batch.scans.to(torch.float32)
             with torch.no_grad():
                 geo = lg.model.precompute(x)
-                prior = None
-                if lg.model.needs_prior:
-                    prior = sector_prior_batch(batch.scans, batch.T_gt, batch.maps,
-                                               lg.model.config.prior_dmax).to(cfg.device)
+                prior = prior_channels(lg.model.config, batch, torch.full((len(batch),), float(lam)),
+                                       PointToPlaneICP(cfg.icp_preset))
+                prior = None if prior is None else prior.to(cfg.device)
                 adv = lg.model(x.to(cfg.device), geo.to(cfg.device),
                                torch.full((len(batch),), float(lam)) if lg.model.needs_budget
                                else None, prior).cpu().double()
