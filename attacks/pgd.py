@@ -44,9 +44,11 @@ class PGDAttack(Attack):
             with 25); the tolerance is kept, so converged samples stop early.
         random_start: start from a uniform random point of each ball (else from the clean scan);
             ignored when ``init`` is given.
-        init: ``"random"``, ``"clean"`` or ``"sector"`` (the sector attack's output, which moves
+        init: ``"random"``, ``"clean"``, ``"sector"`` (the sector attack's output, which moves
             every associated point by the budget along its map normal; the ascent then starts
-            from the one-step worst case). None: ``"random"`` if ``random_start`` else ``"clean"``.
+            from the one-step worst case) or ``"sector-iter"`` (the iterated analytic attack's
+            output with its default settings, :mod:`icpbench.attacks.sector_iter`).
+            None: ``"random"`` if ``random_start`` else ``"clean"``.
         restarts: independent random starts; the best result per scan is kept.
         schedule: ``"constant"`` (every step ``step_size``) or ``"cosine"`` (from ``step_size``
             down to ``final_step_size`` on a half cosine over ``steps``).
@@ -71,8 +73,9 @@ class PGDAttack(Attack):
                  backprop: str | None = None, init: str | None = None, **params: Any) -> None:
         if init is None:
             init = "random" if random_start else "clean"
-        if init not in ("random", "clean", "sector"):
-            raise InputError(f"pgd init must be 'random', 'clean' or 'sector', got {init!r}")
+        if init not in ("random", "clean", "sector", "sector-iter"):
+            raise InputError(f"pgd init must be 'random', 'clean', 'sector' or 'sector-iter', got "
+                             f"{init!r}")
         random_start = init == "random"
         super().__init__(strict=strict, steps=steps, step_size=step_size, weights=weights,
                          icp_iterations=icp_iterations, random_start=random_start,
@@ -132,6 +135,11 @@ class PGDAttack(Attack):
         for _ in range(self.restarts):
             if self.init == "sector":
                 adv = self.sector_start(batch, budget_m, icp).to(torch.float64)
+            elif self.init == "sector-iter":
+                from icpbench.attacks.sector_iter import SectorIterAttack
+
+                adv = SectorIterAttack()._perturb(batch, budget_m, surrogate=surrogate,
+                                                  generator=generator)[0].to(torch.float64)
             elif self.random_start:
                 d = generator.randn(*clean.shape[1:], dtype=torch.float64)  # per-sample streams
                 d = d / torch.linalg.norm(d, dim=-1, keepdim=True)

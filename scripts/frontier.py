@@ -2,7 +2,8 @@
 
 For each attack configuration (normal, sector, the generator, the generator followed by K = 1, 3, 10
 projected gradient steps, PGD with 5, 10 and 30 steps from a random start and with 5 and 10 steps
-from the sector attack's output) runs ``icpbench run`` on the same lidar-sim
+from the sector attack's output, the iterated analytic attack ``sector-iter`` and PGD-5 from its
+output) runs ``icpbench run`` on the same lidar-sim
 test scans (default: the first 48 of Table 1's test passes) at lambda = 1 and 4 m, target p2plane
 (lidar preset, 100 iterations), into ``OUT/runs/<config>/`` (resumable: re-running the command
 continues where it stopped), then writes
@@ -39,6 +40,9 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     # beyond the issue's list: PGD warm-started from the sector attack's output (cheaper oracle)
     "pgd-5-sector": ("pgd", ["pgd.steps=5", "pgd.init=sector"]),
     "pgd-10-sector": ("pgd", ["pgd.steps=10", "pgd.init=sector"]),
+    # the iterated analytic attack (8 re-linearisations) and PGD from its output
+    "sector-iter": ("sector-iter", []),
+    "pgd-5-sector-iter": ("pgd", ["pgd.steps=5", "pgd.init=sector-iter"]),
 }
 
 #: the lines of the plot: configurations that differ only in their number of steps.
@@ -46,6 +50,7 @@ FAMILIES: dict[str, list[str]] = {
     "generator": ["generator", "generator+1", "generator+3", "generator+10"],
     "pgd": ["pgd-5", "pgd-10", "pgd-30"],
     "pgd-sector": ["pgd-5-sector", "pgd-10-sector"],
+    "sector-iter": ["sector-iter", "pgd-5-sector-iter"],
 }
 
 
@@ -95,7 +100,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
     fig, axes = plt.subplots(1, len(budgets), figsize=(6 * len(budgets), 4.5), squeeze=False)
     for ax, lam in zip(axes[0], budgets, strict=True):
         sub = res[res["budget_m"] == lam]
-        for fam, style in (("generator", "o-"), ("pgd", "s--"), ("pgd-sector", "d:")):
+        for fam, style in (("generator", "o-"), ("pgd", "s--"), ("pgd-sector", "d:"),
+                           ("sector-iter", "v-.")):
             # each family in the order of CONFIGS (more steps), not of the noisy measured time
             f = sub[sub["config"].isin(FAMILIES[fam])]
             f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))

@@ -95,3 +95,12 @@ def test_ball_generator_with_iterated_prior_starts_as_the_attack(batch, icp):
     assert (torch.linalg.norm(moved, dim=-1) <= lam[:, None] * (1 + 1e-5)).all()
     with pytest.raises(InputError, match="surrogate"):
         prior_channels(cfg, batch, lam, None)
+
+
+def test_pgd_from_the_iterated_attack_never_falls_below_it(batch, icp):
+    from icpbench.attacks.pgd import PGDAttack
+
+    start = SectorIterAttack().run(batch, 0.3, surrogate=icp, generator=0).scans
+    out = PGDAttack(steps=2, init="sector-iter").run(batch, 0.3, surrogate=icp, generator=0)
+    assert torch.all(_xy_error(icp, batch, out.scans) >= _xy_error(icp, batch, start) - 1e-9)
+    assert out.stats["disp_max"].max() <= 0.3 + 1e-9
