@@ -40,30 +40,21 @@ def test_direction_channel_is_the_sector_attack(batch):
         torch.testing.assert_close(g.abs().mean(0), torch.ones(2), atol=1e-4, rtol=0)
 
 
-def test_untrained_prior_model_is_the_scaled_sector_attack(batch):
-    """Zero last layer: output = x + lambda * tanh(gain) * d_prior (bounded squashing)."""
-    cfg = generator_config("objects", output="bounded", prior="sector", prior_gain=1.5)
+@pytest.mark.parametrize("output, gain, scale", [("bounded", 1.5, np.tanh(1.5)),
+                                                 ("sphere", 2.0, 1.0), ("ball", 1.0, 1.0)])
+def test_untrained_prior_model_is_the_sector_attack(batch, output, gain, scale):
+    """Zero last layer: output = x + lambda * scale * d_prior, where the bounded squashing gives
+    scale = tanh(gain) and the sphere (every moved point at lambda) and ball (gain 1) outputs give
+    the sector attack itself; unassociated points stay put."""
+    cfg = generator_config("objects", output=output, prior="sector", prior_gain=gain)
     g = Generator(cfg).eval()
     x = batch.scans.float()
     pr = sector_prior_batch(batch.scans, batch.T_gt, batch.maps)
     lam = torch.tensor([0.3, 0.7])
     with torch.no_grad():
         out = g(x, g.precompute(x), lam, pr)
-    expect = x + lam[:, None, None] * np.tanh(1.5) * pr[..., 0:3]
+    expect = x + lam[:, None, None] * scale * pr[..., 0:3]
     torch.testing.assert_close(out, expect, atol=1e-5, rtol=0)
-
-
-def test_untrained_sphere_prior_model_is_the_sector_attack(batch):
-    """Sphere output, zero last layer: every associated point moves by exactly lambda along the
-    sector direction (the sector attack itself), unassociated points stay put."""
-    cfg = generator_config("objects", output="sphere", prior="sector")
-    g = Generator(cfg).eval()
-    x = batch.scans.float()
-    pr = sector_prior_batch(batch.scans, batch.T_gt, batch.maps)
-    lam = torch.tensor([0.3, 0.7])
-    with torch.no_grad():
-        out = g(x, g.precompute(x), lam, pr)
-    torch.testing.assert_close(out, x + lam[:, None, None] * pr[..., 0:3], atol=1e-5, rtol=0)
 
 
 def test_sphere_output_spends_the_whole_budget_and_has_gradients(batch):
