@@ -14,7 +14,7 @@ SAMPLES=${SAMPLES:-48}
 EXECUTOR=${EXECUTOR:-ray}
 OUT=results/table1-run
 rm -rf "$OUT"
-icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,generator,generator-refine \
+icpbench run --dataset lidar-sim --attacks none,uniform,normal,sector,sector-iter,generator,generator-refine \
   --targets p2plane \
   --budgets 1,2,3,4,5 --samples "$SAMPLES" --batch-size 4 --reference generator \
   --executor "$EXECUTOR" --out "$OUT"

@@ -16,7 +16,8 @@ CKPT = shipped_checkpoint_dir("lidar-sim") / "generator.pt"
 
 def test_card_and_resolution():
     lg = load_checkpoint(CKPT)
-    assert lg.model.needs_budget and lg.config.output == "bounded" and lg.config.conditioned
+    assert lg.model.needs_budget and lg.config.output == "ball" and lg.config.conditioned
+    assert lg.config.prior == "sector-iter"
     card = lg.card
     assert card["data"]["dataset"] == "lidar-sim" and card["data"]["split"] == "train"
     assert card["train_wall_s"] > 0 and card["epochs_done"] >= 1
@@ -34,7 +35,7 @@ def test_card_and_resolution():
 @pytest.mark.parametrize("budget", [1.0, 5.0])
 def test_beats_normal_on_test_scans_within_the_budget(budget):
     """On the first four test scans the generator's mean error (every run at its final error: the
-    sensitivity-prior model often keeps ICP from converging at large budgets) exceeds normal's,
+    iterated-prior model often keeps ICP from converging at large budgets) exceeds normal's,
     and at λ = 1 m it is larger on every scan."""
     ds = registry.datasets.get("lidar-sim")(seed=0, split="test")
     batch = Batch.from_samples([ds[i] for i in range(4)])

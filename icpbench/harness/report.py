@@ -24,9 +24,10 @@ PAIR_KEYS = ["sample_id", "target", "budget", "seed"]
 
 #: Display names and the paper's row order; unknown attacks go before the reference.
 DISPLAY = {"none": "Original", "uniform": "Uniform", "normal": "Normal",
-           "sector": "Sector (analytic)", "pgd": "PGD (oracle)", "generator": "Ours",
+           "sector": "Sector (analytic)", "sector-iter": "Sector, iterated",
+           "pgd": "PGD (oracle)", "generator": "Ours",
            "generator-refine": "Ours + 3 steps"}
-ORDER = ["none", "uniform", "normal", "sector", "pgd"]
+ORDER = ["none", "uniform", "normal", "sector", "sector-iter", "pgd"]
 
 
 def attack_order(attacks: list[str], reference: str | None) -> list[str]:
