@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The main job: Table 1 of the paper on the built-in simulated lidar data (lidar-sim test passes),
-# λ = 1..5 m, target p2plane, attacks none, uniform, normal, sector, the shipped generator ("Ours")
+# λ = 1..5 m, target p2plane, attacks none, uniform, normal, sector, sector-iter (the sector step
+# iterated where the attacked ICP lands, beyond the paper), the shipped generator ("Ours")
 # and the generator followed by 3 projected gradient steps through the surrogate ("Ours + 3 steps",
 # beyond the paper), from committed code and the checkpoint in icpbench/checkpoints/lidar-sim/.
 # Writes results/table1.{md,tex,csv} and results/table1-run/{results.csv,manifest.json}.

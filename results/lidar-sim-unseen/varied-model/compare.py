@@ -2,7 +2,8 @@
 
 Usage (from the repository root): ``python results/lidar-sim-unseen/varied-model/compare.py``
 prints the markdown table in ``results/lidar-sim-unseen/README.md``, computed from the two results
-folders with :mod:`icpbench.harness.report` (nothing typed by hand): per budget λ [m], "% Ours is
+folders (``shipped``: the session-5 sensitivity-prior model, shipped when the varied model was
+trained; ``varied``) with :mod:`icpbench.harness.report` (nothing typed by hand): per budget λ [m], "% Ours is
 Larger" vs normal, uniform and sector (converged pairs, as in Table 1; in brackets every pair with
 a finite error, non-converged runs at their final error), Ours' mean translational error (x-y, m,
 converged runs) and its converged share; then, scan by scan (final errors, converged or not), on how
@@ -20,7 +21,7 @@ from icpbench.harness.report import pct_reference_larger, table1_cells
 from icpbench.harness.results import load_results
 
 HERE = Path(__file__).resolve().parent
-RUNS = {"shipped": HERE.parent / "run", "varied": HERE / "run"}
+RUNS = {"shipped": HERE.parent / "session5-model" / "run", "varied": HERE / "run"}
 VS = ("normal", "uniform", "sector")
 
 
