@@ -276,7 +276,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
             if fixed_lam is not None:  # imitation: the budget the oracle answered at
                 lam = fixed_lam[torch.as_tensor(idx)]
-            if model.needs_prior and model.config.prior == "sector-iter":  # depends on lambda
+            if model.config.prior == "sector-iter":  # depends on lambda: per (scan, λ)
                 prior = torch.cat([_iterated_prior(model, train_set[i], float(v), prior_icp,
                                                    iter_priors, int(i))
                                    for i, v in zip(idx, lam.tolist(), strict=True)]).to(device)
@@ -399,8 +399,6 @@ def _iterated_prior(model: torch.nn.Module, sample: Any, budget_m: float, icp: A
                     cache: dict[tuple[int, float], torch.Tensor], key: int) -> torch.Tensor:
     """Prior channels (1, N, 8) of ``prior="sector-iter"`` for one training scan at one budget
     (metres), computed on first use with the training surrogate ``icp`` and kept in ``cache``."""
-    from icpbench.learning.prior import prior_channels
-
     k = (key, budget_m)
     if k not in cache:
         cache[k] = prior_channels(model.config, Batch.from_samples([sample]),
