@@ -15,6 +15,7 @@ continues where it stopped), then writes
 
     python scripts/frontier.py --out results/frontier            # ~1-2 h on 2 cores
     python scripts/frontier.py --samples 4 --out runs/frontier-smoke --only normal,generator
+    python scripts/frontier.py --out results/frontier --summarise-only   # tables from the folders
 """
 
 from __future__ import annotations
@@ -71,10 +72,16 @@ def run_config(name: str, out: Path, samples: int, budgets: str, extra: list[str
 
 
 def summarise(out: Path, names: list[str]) -> pd.DataFrame:
-    """Per configuration and budget: errors, convergence and attack time per scan."""
+    """Per configuration and budget: errors, convergence and attack time per scan.
+
+    Configurations without a ``out/runs/<name>/results.csv`` are skipped.
+    """
     rows = []
     for name in names:
-        df = pd.read_csv(out / "runs" / name / "results.csv")
+        csv = out / "runs" / name / "results.csv"
+        if not csv.is_file():
+            continue
+        df = pd.read_csv(csv)
         df = df[df["status"] != "error"]
         for lam, g in df.groupby("budget"):
             conv = g[g["converged"].astype(bool)]
@@ -85,6 +92,8 @@ def summarise(out: Path, names: list[str]) -> pd.DataFrame:
                          "attack_s": g["attack_time_s"].mean(),
                          "disp_max_m": g["disp_max"].max()})
     res = pd.DataFrame(rows)
+    if res.empty:
+        return res
     ref = res[res["config"] == "pgd-30"].set_index("budget_m")["err_all_m"]
     res["vs_pgd30"] = [r.err_all_m / ref.get(r.budget_m, float("nan")) for r in res.itertuples()]
     return res
@@ -128,6 +137,8 @@ def main() -> None:
     ap.add_argument("--only", default=",".join(CONFIGS), help="comma-separated configurations")
     ap.add_argument("--run-arg", action="append", default=[],
                     help="extra argument passed to every `icpbench run` (repeatable)")
+    ap.add_argument("--summarise-only", action="store_true",
+                    help="run nothing; rewrite frontier.csv/png from the run folders present")
     ap.add_argument("--cli", default="icpbench",
                     help="command that runs the icpbench CLI (default: icpbench)")
     args = ap.parse_args()
@@ -136,9 +147,13 @@ def main() -> None:
     if unknown:
         sys.exit(f"error: unknown configuration(s) {unknown}; valid: {', '.join(CONFIGS)}")
     out = Path(args.out)
-    for n in names:
-        run_config(n, out, args.samples, args.budgets, args.run_arg, args.cli.split())
-    res = summarise(out, names)
+    if not args.summarise_only:
+        for n in names:
+            run_config(n, out, args.samples, args.budgets, args.run_arg, args.cli.split())
+    # the summary covers every configuration run so far, not only those of this call
+    res = summarise(out, list(CONFIGS))
+    if res.empty:
+        sys.exit(f"error: no run folders with results under {out / 'runs'}")
     res.to_csv(out / "frontier.csv", index=False, float_format="%.4g")
     plot(res, out / "frontier.png")
     print(res.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
