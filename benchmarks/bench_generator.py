@@ -9,8 +9,9 @@ the same scan against the same map, measured in the same run):
 
 * ``open3d-icp-30``: the reference itself;
 * ``precompute``: FPS, kNN groups and 3-NN interpolation weights of the clean scan (no gradient);
-* ``prior``: the sector-prior input channels of the shipped model (``icpbench.learning.prior``:
-  one nearest-neighbour query of the scan in the map and a 6x6 solve);
+* ``prior``: the prior input channels of the shipped model (``icpbench.learning.prior``): for the
+  one-step sector prior one nearest-neighbour query of the scan in the map and a 6x6 solve; for the
+  iterated prior (``prior="sector-iter"``, shipped since session 7) also 9 forward surrogate ICPs;
 * ``generator-forward``: one forward pass of the shipped lidar-sim generator (prior given);
 * ``generator-attack``: the registered ``generator`` attack's ``run`` on the scan: precompute +
   prior + forward + projection, what the attack costs per scan (the issue's 2.5x target);
@@ -62,13 +63,18 @@ def _problem() -> dict[str, object]:
 
 
 def _prior(st: dict[str, object]) -> torch.Tensor | None:
-    """The model's analytic input channels (B, N, 8) of the clean scan, None for models without."""
+    """The model's analytic input channels (B, N, 8) of the clean scan, None for models without.
+
+    The channels of the model's own ``prior`` setting: the one-step sector prior, or for
+    ``prior="sector-iter"`` (the shipped model since session 7) the iterated attack with its surrogate
+    ICP runs, as the registered attack computes them.
+    """
     model, batch = st["model"], st["batch"]
     if not getattr(model, "needs_prior", False):
         return None
-    from icpbench.learning.prior import sector_prior_batch
+    from icpbench.learning.prior import prior_channels
 
-    return sector_prior_batch(batch.scans, batch.T_gt, batch.maps, model.config.prior_dmax)
+    return prior_channels(model.config, batch, st["budget"], st["surrogate"])
 
 
 def _forward(st: dict[str, object], geo, prior) -> torch.Tensor:
