@@ -9,8 +9,10 @@
 # (no prior, bounded output, batch 2, 25 unrolled ICP iterations), shortened to SCANS training
 # scans (default 12) and one epoch, one torch thread per process. It runs four times, one after
 # the other: the before tree in one process and in two DDP processes (torchrun, gloo), then this
-# tree the same two ways. The before tree is checked out into a detached worktree and imported
-# through PYTHONPATH, so that its own package runs. Printed: the epoch loop's wall time
+# tree the same two ways. The before tree is checked out into a detached worktree and installed
+# (editable, no dependencies) into a virtual environment that sees the system's packages, so that
+# its own package and its own plugin entry points run (with only PYTHONPATH, the entry points of
+# the installed icpbench would import this tree's targets into the old package). Printed: the epoch loop's wall time
 # (`train_wall_s` of each model card: data loading and evaluation excluded) and scans per second,
 # and every row's throughput relative to the before tree's single process. Wall time, because two
 # processes are faster only in wall time: run it on an otherwise idle machine.
@@ -23,22 +25,24 @@ OLD="$OUT/before-tree"
 rm -rf "$OLD"
 git worktree add --detach "$OLD" "$BEFORE" -q
 trap 'git worktree remove --force "$OLD"' EXIT
+python -m venv --system-site-packages "$OUT/before-venv"
+"$OUT/before-venv/bin/python" -m pip install -q --no-deps -e "$OLD" > /dev/null 2>&1
 
 ARGS=(train --preset quick-lidar --train-samples "$SCANS" --epochs 1 --eval-samples 1 --threads 1
       --quiet)
-run() {  # run NAME TREE NPROC
-  local name=$1 tree=$2 nproc=$3
+run() {  # run NAME TREE PYTHON NPROC
+  local name=$1 tree=$2 py=$3 nproc=$4
   local launcher=(-m icpbench.cli)
   [ "$nproc" -gt 1 ] && launcher=(-m torch.distributed.run --standalone --nproc_per_node "$nproc"
                                   -m icpbench.cli)
   echo "== $name (tree $tree, $nproc process(es))" >&2
-  (cd "$tree" && OMP_NUM_THREADS=1 PYTHONPATH="$tree" python "${launcher[@]}" "${ARGS[@]}" \
+  (cd "$tree" && OMP_NUM_THREADS=1 PYTHONPATH="$tree" "$py" "${launcher[@]}" "${ARGS[@]}" \
       --out "$OUT/$name" > "$OUT/$name.log" 2>&1)
 }
-run before-1proc "$OLD" 1
-run before-2proc "$OLD" 2
-run after-1proc "$PWD" 1
-run after-2proc "$PWD" 2
+run before-1proc "$OLD" "$OUT/before-venv/bin/python" 1
+run before-2proc "$OLD" "$OUT/before-venv/bin/python" 2
+run after-1proc "$PWD" python 1
+run after-2proc "$PWD" python 2
 
 python - "$OUT" "$SCANS" <<'EOF'
 import json, sys
