@@ -1,5 +1,6 @@
 """Runner: resume after SIGKILL, determinism, failed plugins become rows, manifest contents."""
 
+import json
 import os
 import signal
 import subprocess
@@ -13,7 +14,13 @@ import torch
 from icpbench.attacks.base import Attack
 from icpbench.core import registry
 from icpbench.core.errors import InputError
-from icpbench.harness.results import RESULTS_FILE, ResultsStore, load_results, read_manifest
+from icpbench.harness.results import (
+    MANIFEST_FILE,
+    RESULTS_FILE,
+    ResultsStore,
+    load_results,
+    read_manifest,
+)
 from icpbench.harness.runner import RunConfig, run
 
 GRID = ["--dataset", "synthetic", "--attacks", "none,uniform", "--targets", "p2plane",
@@ -108,6 +115,35 @@ def test_resume_refuses_results_of_a_changed_checkpoint(tmp_path):
     save_checkpoint(Generator(generator_config("objects")), ckpt)  # other weights, same path
     with pytest.raises(InputError, match="other files for attack.*generator"):
         run(cfg, tmp_path / "r", progress=False)
+
+
+def test_resume_refuses_a_manifest_without_fingerprints(tmp_path):
+    """A results folder from before fingerprints were recorded cannot show which checkpoint made
+    its generator rows: resuming into it with a generator is refused (it used to be accepted, and
+    the rewritten manifest then named the new checkpoint and commit for the old rows); an attack
+    without files still resumes."""
+    from icpbench.learning.checkpoint import save_checkpoint
+    from icpbench.learning.network import Generator, generator_config
+
+    ckpt = tmp_path / "g.pt"
+    save_checkpoint(Generator(generator_config("objects")), ckpt)
+    for attack, refused in (("uniform", False), ("generator", True)):
+        out = tmp_path / attack
+        params = {"generator": {"checkpoint": str(ckpt)}} if attack == "generator" else {}
+        cfg = RunConfig(dataset="synthetic", attacks=[attack], targets=["p2plane"],
+                        budgets=[1.0], samples=1, dataset_params={"n_samples": 1},
+                        attack_params=params)
+        run(cfg, out, progress=False)
+        m = read_manifest(out)
+        del m["fingerprints"]  # as written before fingerprints existed
+        (out / MANIFEST_FILE).write_text(json.dumps(m))
+        if refused:
+            with pytest.raises(InputError, match="other files for attack.*generator"):
+                run(cfg, out, progress=False)
+            assert "fingerprints" not in read_manifest(out)  # left as it was
+        else:
+            run(cfg, out, progress=False)
+            assert read_manifest(out)["completed_rows"] == 1
 
 
 class _Crashing(Attack):

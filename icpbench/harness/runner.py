@@ -375,9 +375,13 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                 raise InputError(
                     f"{out_dir} holds results of a different configuration ({'; '.join(diff)}); "
                     "use a new --out (or the same command to resume)")
-        if old is not None and "fingerprints" in old:  # older manifests lack them: not checked
+        if old is not None:
+            # a manifest older than the fingerprints cannot show which files made its rows: an
+            # attack that has files (a generator checkpoint) is then refused too, or the rewritten
+            # manifest would label the old rows with the new checkpoint and commit
+            old_fp = old.get("fingerprints")
             changed = [n for n, fp in manifest["fingerprints"].items()
-                       if fp and old["fingerprints"].get(n) != fp]
+                       if fp and (old_fp is None or old_fp.get(n) != fp)]
             if changed:
                 raise InputError(
                     f"{out_dir} holds results made with other files for attack(s) "
