@@ -10,7 +10,8 @@ continues where it stopped), then writes
 
 * ``OUT/frontier.csv``: per configuration and budget, the mean translation error over all runs
   at their final error (``err_all_m``) and over converged runs (``err_conv_m``), the share converged,
-  the mean attack time per scan (``attack_s``, one core) and the mean ratio to PGD-30's error;
+  the mean attack wall time per scan (``attack_s``, one torch thread; rows run under different
+  machine loads compare only roughly) and the mean ratio to PGD-30's error;
 * ``OUT/frontier.png``: error versus attack time per scan (log axis), one panel per budget.
 
     python scripts/frontier.py --out results/frontier            # ~1-2 h on 2 cores
@@ -121,7 +122,7 @@ def plot(res: pd.DataFrame, path: Path) -> None:
             if r.config in ("normal", "sector"):
                 ax.plot([r.attack_s], [r.err_all_m], "^", label=r.config)
         ax.set_xscale("log")
-        ax.set_xlabel("attack time per scan [s] (one CPU core)")
+        ax.set_xlabel("attack wall time per scan [s] (one torch thread)")
         ax.set_ylabel("mean translation error [m]")
         ax.set_title(f"λ = {lam:g} m")
         ax.grid(alpha=0.3)
