@@ -12,9 +12,9 @@
 # tree the same two ways. The before tree is checked out into a detached worktree and installed
 # (editable, no dependencies) into a virtual environment that sees the system's packages, so that
 # its own package and its own plugin entry points run (with only PYTHONPATH, the entry points of
-# the installed icpbench would import this tree's targets into the old package). Printed: the epoch loop's wall time
-# (`train_wall_s` of each model card: data loading and evaluation excluded) and scans per second,
-# and every row's throughput relative to the before tree's single process. Wall time, because two
+# the installed icpbench would import this tree's targets into the old package). Printed: scans per
+# second of the epoch loop (from `train_wall_s` of each model card: data loading and evaluation
+# excluded) and every row's throughput relative to the before tree's single process. Wall time, because two
 # processes are faster only in wall time: run it on an otherwise idle machine.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -51,8 +51,7 @@ from pathlib import Path
 out, scans = Path(sys.argv[1]), int(sys.argv[2])
 rows = {}
 for name in ("before-1proc", "before-2proc", "after-1proc", "after-2proc"):
-    card = json.loads((out / name / "generator.json").read_text())
-    card = card.get("card", card)
+    card = json.loads((out / name / "generator.json").read_text())["card"]
     rows[name] = scans / card["train_wall_s"]
 base = rows["before-1proc"]
 print("| run | scans/s | x before, 1 process |")

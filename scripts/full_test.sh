@@ -8,10 +8,11 @@
 # About 120 CPU minutes with the shipped iterated-prior generator (2.9 s of attack per scan and
 # budget); EXECUTOR=ray spreads the units over the cores (pip install 'icpbench[ray]'; 61 min on
 # 2 cores for the committed results). Resumable: re-run the same command after an interruption.
+# Choose the folder with OUT=..., not with --out (the table step reads $OUT).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+OUT=${OUT:-results/lidar-sim-test-full}
 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} icpbench run --dataset lidar-sim \
   --attacks uniform,normal,generator --targets p2plane --budgets 1,2,3,4,5 --samples 372 \
-  --batch-size 4 --executor "${EXECUTOR:-local}" --out "${OUT:-results/lidar-sim-test-full}" "$@"
-icpbench table "${OUT:-results/lidar-sim-test-full}" --format md --reference generator \
-  --out "${OUT:-results/lidar-sim-test-full}/table1.md" > /dev/null
+  --batch-size 4 --executor "${EXECUTOR:-local}" --out "$OUT" "$@"
+icpbench table "$OUT" --format md --reference generator --out "$OUT/table1.md" > /dev/null
