@@ -204,6 +204,63 @@ def test_correspondence_cache_returns_the_nearest_neighbour_of_every_point():
     assert skipped > 2 * p.shape[1]  # the cache really saved queries
 
 
+def test_correspondence_cache_beyond_the_bound_never_changes_which_points_count():
+    """With a query bound, points whose nearest map point is beyond it may keep a stale row while
+    they move less than the excess; every point within the bound still gets its true nearest map
+    point, and every stale row stays beyond the bound (so the ICP gives it no weight)."""
+    from icpbench.core.mapindex import MapIndex
+    from icpbench.targets.icp import _Correspondences
+
+    rng = np.random.default_rng(1)
+    s = scene_sample(2_000, 5_000, seed=4)
+    maps = [MapIndex(s.map, s.map_normals)]
+    p = torch.as_tensor(s.scan[None] + rng.normal(0, 3.0, (1, 2_000, 3)))  # many far points
+    bound = 1.0
+    finite = torch.ones(1, 2_000, dtype=torch.bool)
+    nn = _Correspondences(maps, p, finite, torch.float64, bound=bound)
+    plain = _Correspondences(maps, p, finite, torch.float64)
+    q = p.transpose(1, 2).contiguous()
+    saved, stale = 0, 0
+    for step in (0.3, 0.05, 1e-3, 0.2, 1e-4, 0.5, 1e-2):
+        q = q + torch.as_tensor(rng.normal(0, step, (1, 3, 1)) + rng.normal(0, step / 10, q.shape))
+        b0, b1 = nn.queried, plain.queried
+        got = nn.update(q, torch.ones(1, dtype=torch.bool)).numpy()[0]
+        plain.update(q, torch.ones(1, dtype=torch.bool))
+        saved += (plain.queried - b1) - (nn.queried - b0)
+        dist, want = maps[0].query(q[0].T.numpy())
+        near = dist < bound
+        assert np.array_equal(got[near], want[near])
+        d_got = np.linalg.norm(maps[0].points[got[~near]] - q[0].T.numpy()[~near], axis=1)
+        assert (d_got > bound).all()
+        stale += int((got[~near] != want[~near]).sum())
+    assert saved > 0 and stale > 0  # the rule was used, and it did leave stale rows
+
+
+def test_icp_result_does_not_depend_on_the_far_point_rule(monkeypatch):
+    """A scan with many points beyond d_max registers to exactly the same pose whether far points
+    are re-queried every iteration or kept while they cannot come within the bound."""
+    import icpbench.targets.icp as icp_mod
+
+    s = scene_sample(3_000, 8_000, seed=2)
+    scan = s.scan.copy()
+    scan[::3] += np.random.default_rng(0).normal(0, 6.0, (len(scan[::3]), 3))  # clutter
+    batch = Batch.from_samples([s])
+    x = torch.as_tensor(scan[None])
+    target = PointToPlaneICP("lidar")
+    maps = [target.prepare(s.map, s.map_normals)]
+    with_rule = target.register(x, maps, batch.T_init)
+    real = icp_mod._Correspondences
+
+    class Plain(real):
+        def __init__(self, *args, bound=np.inf, **kw):
+            super().__init__(*args, **kw)
+
+    monkeypatch.setattr(icp_mod, "_Correspondences", Plain)
+    without = target.register(x, maps, batch.T_init)
+    assert torch.equal(with_rule.T, without.T)
+    assert torch.equal(with_rule.iterations, without.iterations)
+
+
 def test_plane_backward_matches_autograd_of_the_formula():
     """The hand-written backward of the point-to-plane normal equations equals autograd of the
     same formula, with and without the Cauchy kernel, with and without a gradient on H."""
