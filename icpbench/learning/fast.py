@@ -38,14 +38,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-if TYPE_CHECKING:
-    from threadpoolctl import ThreadpoolController
+from icpbench.learning.blas import blas_threads, mm
 
+if TYPE_CHECKING:
     from icpbench.learning.geometry import Geometry
     from icpbench.learning.network import Generator, SetAbstraction
 
@@ -54,9 +53,6 @@ if TYPE_CHECKING:
 _BLOCK_ROWS = 4096
 #: Bytes of the widest layer's rows per block of a set-abstraction pass (whole groups of K rows).
 _BLOCK_BYTES = 2**21
-
-_BLAS: ThreadpoolController | None = None
-
 
 class Workspace:
     """Named flat buffers reused across calls (grown when a larger shape is asked for)."""
@@ -80,24 +76,6 @@ def eligible(model: Generator, x: Tensor) -> bool:
     """Whether :func:`forward` applies: no autograd, CPU tensors, per-sample norm."""
     return (not torch.is_grad_enabled() and x.device.type == "cpu"
             and model.config.norm in ("group", "none"))
-
-
-def _blas_threads():
-    """Context manager limiting numpy's BLAS to torch's thread count (numpy's OpenBLAS would
-    otherwise start one thread per core: measured 3x slower in CPU time on the shared 2 cores)."""
-    global _BLAS
-    if _BLAS is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=torch.get_num_threads(), user_api="blas")
-
-
-def _mm(x: Tensor, w_t: Tensor, out: Tensor) -> Tensor:
-    """``out = x @ w_t`` by numpy's BLAS: x (P, I), w_t (I, O), out (P, O) contiguous CPU tensors
-    of one dtype, no autograd."""
-    np.matmul(x.numpy(), w_t.numpy(), out=out.numpy())
-    return out
 
 
 class _Stats:
@@ -197,7 +175,7 @@ def _set_abstraction(sa: SetAbstraction, ws: Workspace, src: Tensor, centers: Te
     S, K = group.shape
     dtype = src.dtype
     W0 = sa.first.weight.detach()[:, :, 0]  # (w0, 3 + C)
-    pre = _mm(src, W0.T.contiguous(), ws.get("pre", (src.shape[0], W0.shape[0]), dtype))
+    pre = mm(src, W0.T.contiguous(), ws.get("pre", (src.shape[0], W0.shape[0]), dtype))
     cterm = centers @ W0[:, :3].T  # (S, w0)
     widest = max(W0.shape[0], *(int(c.weight.shape[0]) for c in sa.convs))
     g = max(1, _BLOCK_BYTES // (K * widest * src.element_size()))  # groups per block
@@ -235,7 +213,7 @@ def _set_abstraction(sa: SetAbstraction, ws: Workspace, src: Tensor, centers: Te
             else:
                 hb = relu.apply_(h[rows], out=ws.get("in", (h[rows].shape), dtype))
             ob = ws.get("blk", ((s1 - s0) * K, C), dtype) if last else out[rows]
-            _mm(hb, w_t, ob)
+            mm(hb, w_t, ob)
             st.add(ob)
             if last:  # amax and amin apart: faster than aminmax
                 torch.amax(ob.view(s1 - s0, K, C), 1, out=top[s0:s1])
@@ -257,7 +235,7 @@ def _interpolate(conv: nn.Conv1d, norm: nn.Module, ws: Workspace, name: str, fea
     a scan point sum to 1, so the convolution's bias passes through the interpolation and is
     folded into the norm."""
     W = conv.weight.detach()[:, :, 0]  # (64, C)
-    pre = _mm(feat, W.T.contiguous(), ws.get("fp_pre", (feat.shape[0], W.shape[0]), feat.dtype))
+    pre = mm(feat, W.T.contiguous(), ws.get("fp_pre", (feat.shape[0], W.shape[0]), feat.dtype))
     N, k = idx.shape
     idx_t, w_t = idx.T.contiguous(), w.to(pre.dtype).T.contiguous()[:, :, None]  # (k, N), (k, N, 1)
     up = ws.get(name, (N, pre.shape[1]), pre.dtype)
@@ -308,7 +286,7 @@ def _sample(model: Generator, ws: Workspace, x: Tensor, geo: Geometry, b: int,
         else:  # the previous layer's ReLU (and its bias) folded into this one
             w_t, b_prev = relu.fold(W, None)
             bias = bias + b_prev
-        out = _mm(h, w_t, ws.get(f"head{i}", (h.shape[0], w_t.shape[1]), dtype))
+        out = mm(h, w_t, ws.get(f"head{i}", (h.shape[0], w_t.shape[1]), dtype))
         if i < len(model.head) - 1:
             relu = _Relu(torch.ones_like(bias), bias, dtype)  # relu(out + bias)
             h = relu.apply_(out)
@@ -321,6 +299,6 @@ def forward(model: Generator, x: Tensor, geo: Geometry, budget: Tensor | None,
             prior: Tensor | None) -> Tensor:
     """Head outputs (B, N, 3) of clean scans x (B, N, 3) (inputs already checked by the model)."""
     ws = model.__dict__.setdefault("_workspace", Workspace())
-    with _blas_threads():
+    with blas_threads():
         return torch.stack([_sample(model, ws, x, geo, b, budget, prior)
                             for b in range(x.shape[0])])

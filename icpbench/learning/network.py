@@ -79,7 +79,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from icpbench.core.errors import InputError
-from icpbench.learning import fast
+from icpbench.learning import blas, fast
 from icpbench.learning.geometry import Geometry, GeometryConfig, compute_geometry_batch
 from icpbench.learning.prior import PRIOR_CHANNELS
 
@@ -323,7 +323,11 @@ def pointwise(conv: nn.Conv1d | nn.Conv2d, x: Tensor) -> Tensor:
     w = conv.weight.reshape(conv.weight.shape[0], C)
     bias = conv.bias if conv.bias is not None else w.new_zeros(w.shape[0])
     if B == 1:  # (the CPU runs samples one by one: Generator.chunk_size)
-        out = torch.addmm(bias[:, None], w, x.reshape(C, -1))[None]
+        xm = x.reshape(C, -1)
+        if blas.eligible(w, xm, bias):  # numpy's BLAS: 2-3x faster skinny products on the CPU
+            out = blas.linear(w, xm, bias)[None]
+        else:
+            out = torch.addmm(bias[:, None], w, xm)[None]
     else:  # (torch.matmul would copy x into another layout first)
         out = torch.baddbmm(bias[None, :, None], w.expand(B, -1, -1), x.reshape(B, C, -1))
     return out.reshape(B, -1, *x.shape[2:])
