@@ -3,7 +3,8 @@
 For each attack configuration (normal, sector, the generator, the generator followed by K = 1, 3, 10
 projected gradient steps, PGD with 5, 10 and 30 steps from a random start and with 5 and 10 steps
 from the sector attack's output, the iterated analytic attack ``sector-iter`` and PGD-5 from its
-output) runs ``icpbench run`` on the same lidar-sim
+output, and ``generator-fast``: the shipped weights with a 4-iteration prior,
+scripts/derive_fast_generator.py) runs ``icpbench run`` on the same lidar-sim
 test scans (default: the first 48 of Table 1's test passes) at lambda = 1 and 4 m, target p2plane
 (lidar preset, 100 iterations), into ``OUT/runs/<config>/`` (resumable: re-running the command
 continues where it stopped), then writes
@@ -36,6 +37,9 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "generator+1": ("generator", ["generator.refine_steps=1"]),
     "generator+3": ("generator", ["generator.refine_steps=3"]),
     "generator+10": ("generator", ["generator.refine_steps=10"]),
+    # the shipped weights with a 4-iteration prior (scripts/derive_fast_generator.py)
+    "generator-fast": ("generator",
+                       ["generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt"]),
     "pgd-5": ("pgd", ["pgd.steps=5"]),
     "pgd-10": ("pgd", ["pgd.steps=10"]),
     "pgd-30": ("pgd", ["pgd.steps=30"]),
@@ -119,8 +123,9 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
-            if r.config in ("normal", "sector"):
-                ax.plot([r.attack_s], [r.err_all_m], "^", label=r.config)
+            if r.config in ("normal", "sector", "generator-fast"):
+                ax.plot([r.attack_s], [r.err_all_m], "*" if r.config == "generator-fast" else "^",
+                        label=r.config)
         ax.set_xscale("log")
         ax.set_xlabel("attack wall time per scan [s] (one torch thread)")
         ax.set_ylabel("mean translation error [m]")

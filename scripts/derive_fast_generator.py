@@ -1,0 +1,71 @@
+"""Write ``icpbench/checkpoints/lidar-sim-fast/``: the shipped lidar-sim weights with a shorter prior.
+
+The shipped lidar-sim generator takes the iterated sector attack (``prior="sector-iter"``, 8
+re-linearisations, i.e. 9 surrogate ICPs per scan) as input channels, and that prior is most of
+its cost. Session 10 measured the prior alone with fewer re-linearisations on the 48 frontier
+scans (docs/status.md): its error falls slowly (0.97x -> 0.86x PGD-30's at lambda = 1 m, 0.72x ->
+0.71x at 4 m from 8 to 4 iterations) while its time falls with the number of ICPs. This script
+re-saves the *same weights* with ``prior_iterations`` changed (default 4); nothing is trained, and
+the card says so (``derived_from``: source file, its SHA-256 prefix and the changed setting). The
+source card's held-out numbers belong to the 8-iteration prior and are dropped.
+
+    python scripts/derive_fast_generator.py            # -> icpbench/checkpoints/lidar-sim-fast/
+    python scripts/derive_fast_generator.py --prior-iterations 5 --out runs/fast5
+
+Use it with ``--attack-param generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCE = ROOT / "icpbench" / "checkpoints" / "lidar-sim" / "generator.pt"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--source", type=Path, default=SOURCE, help="weights to re-save")
+    ap.add_argument("--prior-iterations", type=int, default=4,
+                    help="re-linearisations of the iterated prior (the source has its own)")
+    ap.add_argument("--out", type=Path, default=ROOT / "icpbench" / "checkpoints" / "lidar-sim-fast")
+    args = ap.parse_args()
+    loaded = load_checkpoint(args.source)
+    model = loaded.model
+    if model.config.prior != "sector-iter":
+        raise SystemExit(f"{args.source} has prior={model.config.prior!r}; only sector-iter models "
+                         "have prior iterations")
+    old = model.config.prior_iterations
+    model.config = model.config.with_(prior_iterations=args.prior_iterations)
+    card = dict(json.loads(args.source.with_suffix(".json").read_text())["card"])
+    card.pop("heldout_eval", None)
+    card["derived_from"] = {
+        "checkpoint": str(args.source.relative_to(ROOT) if args.source.is_relative_to(ROOT)
+                          else args.source),
+        "sha256_16": hashlib.sha256(args.source.read_bytes()).hexdigest()[:16],
+        "changed": {"prior_iterations": [old, args.prior_iterations]},
+        "note": "same weights, not retrained; held-out numbers of the source dropped",
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    dest = save_checkpoint(model, args.out / "generator.pt", card)
+    (args.out / "MODEL_CARD.md").write_text(
+        "# `lidar-sim-fast`: the shipped lidar-sim generator with a shorter prior\n\n"
+        "Written by `python scripts/derive_fast_generator.py` (nothing here is typed by hand).\n\n"
+        f"- weights: those of `{card['derived_from']['checkpoint']}` (SHA-256 "
+        f"{card['derived_from']['sha256_16']}...), not retrained\n"
+        f"- changed: `prior_iterations` {old} -> {args.prior_iterations} (the iterated sector prior "
+        f"runs {args.prior_iterations + 1} surrogate ICPs per scan instead of {old + 1})\n"
+        "- training of the weights: see `icpbench/checkpoints/lidar-sim/MODEL_CARD.md`\n"
+        "- measured: `results/frontier/idle-timing/` (row `generator-fast`) and "
+        "`results/lidar-sim-test-full-fast/` (see `docs/status.md`, session 10)\n"
+        "- use: `--attack-param generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt`\n")
+    print(f"wrote {dest} (prior_iterations {old} -> {args.prior_iterations})")
+
+
+if __name__ == "__main__":
+    main()
