@@ -3,11 +3,11 @@
 For each attack configuration (normal, sector, the generator, the generator followed by K = 1, 3, 10
 projected gradient steps, PGD with 5, 10 and 30 steps from a random start and with 5 and 10 steps
 from the sector attack's output, the iterated analytic attack ``sector-iter`` and PGD-5 from its
-output, and ``generator-fast``: the shipped weights with a 4-iteration prior,
-scripts/derive_fast_generator.py) runs ``icpbench run`` on the same lidar-sim
-test scans (default: the first 48 of Table 1's test passes) at lambda = 1 and 4 m, target p2plane
-(lidar preset, 100 iterations), into ``OUT/runs/<config>/`` (resumable: re-running the command
-continues where it stopped), then writes
+output, the same with 2-5 re-linearisations ``sector-iter-K``, and ``generator-fast``: the
+shipped weights with a 4-iteration prior, scripts/derive_fast_generator.py) runs
+``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
+at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
+(resumable: re-running the command continues where it stopped), then writes
 
 * ``OUT/frontier.csv``: per configuration and budget, the mean translation error over all runs
   at their final error (``err_all_m``) and over converged runs (``err_conv_m``), the share converged,
@@ -48,6 +48,8 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "pgd-10-sector": ("pgd", ["pgd.steps=10", "pgd.init=sector"]),
     # the iterated analytic attack (8 re-linearisations) and PGD from its output
     "sector-iter": ("sector-iter", []),
+    # the same with fewer re-linearisations (the cost / error trade-off of the generator's prior)
+    **{f"sector-iter-{k}": ("sector-iter", [f"sector-iter.iterations={k}"]) for k in (2, 3, 4, 5)},
     "pgd-5-sector-iter": ("pgd", ["pgd.steps=5", "pgd.init=sector-iter"]),
 }
 
@@ -57,6 +59,7 @@ FAMILIES: dict[str, list[str]] = {
     "pgd": ["pgd-5", "pgd-10", "pgd-30"],
     "pgd-sector": ["pgd-5-sector", "pgd-10-sector"],
     "sector-iter": ["sector-iter", "pgd-5-sector-iter"],
+    "sector-iter-k": ["sector-iter-2", "sector-iter-3", "sector-iter-4", "sector-iter-5", "sector-iter"],
 }
 
 
@@ -115,7 +118,7 @@ def plot(res: pd.DataFrame, path: Path) -> None:
     for ax, lam in zip(axes[0], budgets, strict=True):
         sub = res[res["budget_m"] == lam]
         for fam, style in (("generator", "o-"), ("pgd", "s--"), ("pgd-sector", "d:"),
-                           ("sector-iter", "v-.")):
+                           ("sector-iter", "v-."), ("sector-iter-k", "x:")):
             # each family in the order of CONFIGS (more steps), not of the noisy measured time
             f = sub[sub["config"].isin(FAMILIES[fam])]
             f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))
