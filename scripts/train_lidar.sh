@@ -13,6 +13,9 @@
 # (= sector-iter) 2.88 / 13.05 m, the session-5 model 1.69 / 8.57 m (docs/status.md). Run as
 #   bash scripts/train_lidar.sh            # the shipped recipe (~20 min on one core)
 #   RECIPE=sector bash scripts/train_lidar.sh   # session 5's model (one-step sector prior)
+#   PRIOR_ITERATIONS=4 DEST=runs/lidar-gen-iter4-ckpt bash scripts/train_lidar.sh
+#       # session 10: the same recipe with a 4-iteration prior (the cheaper prior of lidar-sim-fast),
+#       # trained for it instead of re-using the 8-iteration weights
 #
 # Session 5 (issue 14, RECIPE=sector, shipped until session 7): the sensitivity-prior generator (docs/methods.md, "Sensitivity prior";
 # docs/pgd_study.md says why): `--generator-param prior=sector` feeds the sector attack's one-step
@@ -55,13 +58,16 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUNS=${RUNS:-runs}
-DEST=icpbench/checkpoints/lidar-sim
+DEST=${DEST:-icpbench/checkpoints/lidar-sim}
+PRIOR_ITERATIONS=${PRIOR_ITERATIONS:-8}
 if [ "${STAGED:-0}" != 1 ] && [ "${RECIPE:-iter}" = iter ]; then
+  name=lidar-gen-iter
+  [ "$PRIOR_ITERATIONS" != 8 ] && name="lidar-gen-iter$PRIOR_ITERATIONS"
   icpbench train --preset quick-lidar --generator-param prior=sector-iter --generator-param output=ball \
-    --generator-param prior_gain=1 --train-samples 144 --epochs 1 --lr 5e-4 --eval-samples 16 \
-    --out "$RUNS/lidar-gen-iter"
+    --generator-param prior_gain=1 --generator-param "prior_iterations=$PRIOR_ITERATIONS" \
+    --train-samples 144 --epochs 1 --lr 5e-4 --eval-samples 16 --out "$RUNS/$name"
   mkdir -p "$DEST"
-  cp "$RUNS/lidar-gen-iter/generator.pt" "$RUNS/lidar-gen-iter/generator.json" "$DEST/"
+  cp "$RUNS/$name/generator.pt" "$RUNS/$name/generator.json" "$DEST/"
   exit 0
 fi
 if [ "${STAGED:-0}" != 1 ]; then
