@@ -40,6 +40,9 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     # the shipped weights with a 4-iteration prior (scripts/derive_fast_generator.py)
     "generator-fast": ("generator",
                        ["generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt"]),
+    # the same recipe trained with that 4-iteration prior (scripts/train_lidar.sh, PRIOR_ITERATIONS=4)
+    "generator-iter4": ("generator",
+                        ["generator.checkpoint=icpbench/checkpoints/lidar-sim-iter4/generator.pt"]),
     "pgd-5": ("pgd", ["pgd.steps=5"]),
     "pgd-10": ("pgd", ["pgd.steps=10"]),
     "pgd-30": ("pgd", ["pgd.steps=30"]),
@@ -126,8 +129,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
-            if r.config in ("normal", "sector", "generator-fast"):
-                ax.plot([r.attack_s], [r.err_all_m], "*" if r.config == "generator-fast" else "^",
+            if r.config in ("normal", "sector", "generator-fast", "generator-iter4"):
+                ax.plot([r.attack_s], [r.err_all_m], "*" if r.config.startswith("generator") else "^",
                         label=r.config)
         ax.set_xscale("log")
         ax.set_xlabel("attack wall time per scan [s] (one torch thread)")
