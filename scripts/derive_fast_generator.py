@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 from pathlib import Path
 
 from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
@@ -42,7 +41,7 @@ def main() -> None:
                          "have prior iterations")
     old = model.config.prior_iterations
     model.config = model.config.with_(prior_iterations=args.prior_iterations)
-    card = dict(json.loads(args.source.with_suffix(".json").read_text())["card"])
+    card = dict(loaded.card)
     card.pop("heldout_eval", None)
     card["derived_from"] = {
         "checkpoint": str(args.source.relative_to(ROOT) if args.source.is_relative_to(ROOT)
