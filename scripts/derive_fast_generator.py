@@ -11,6 +11,11 @@ source card's held-out numbers belong to the 8-iteration prior and are dropped.
 
     python scripts/derive_fast_generator.py            # -> icpbench/checkpoints/lidar-sim-fast/
     python scripts/derive_fast_generator.py --prior-iterations 5 --out runs/fast5
+    python scripts/derive_fast_generator.py --prior-iterations 8 --prior-icp-iterations 100 \
+        --out icpbench/checkpoints/lidar-sim-icp100   # the prior's ICPs run to the lidar cap
+
+``--prior-icp-iterations`` changes the cap of the surrogate ICP the prior runs on each iterate (the
+source's 25 is the training surrogate's cap; the lidar evaluation ICP's is 100).
 
 Use it with ``--attack-param generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt``.
 """
@@ -32,6 +37,8 @@ def main() -> None:
     ap.add_argument("--source", type=Path, default=SOURCE, help="weights to re-save")
     ap.add_argument("--prior-iterations", type=int, default=4,
                     help="re-linearisations of the iterated prior (the source has its own)")
+    ap.add_argument("--prior-icp-iterations", type=int, default=None,
+                    help="cap of the prior's surrogate ICPs (default: the source's)")
     ap.add_argument("--out", type=Path, default=ROOT / "icpbench" / "checkpoints" / "lidar-sim-fast")
     args = ap.parse_args()
     loaded = load_checkpoint(args.source)
@@ -40,29 +47,46 @@ def main() -> None:
         raise SystemExit(f"{args.source} has prior={model.config.prior!r}; only sector-iter models "
                          "have prior iterations")
     old = model.config.prior_iterations
+    changed = {"prior_iterations": [old, args.prior_iterations]}
     model.config = model.config.with_(prior_iterations=args.prior_iterations)
+    if args.prior_icp_iterations is not None:
+        changed["prior_icp_iterations"] = [model.config.prior_icp_iterations,
+                                           args.prior_icp_iterations]
+        model.config = model.config.with_(prior_icp_iterations=args.prior_icp_iterations)
     card = dict(loaded.card)
     card.pop("heldout_eval", None)
     card["derived_from"] = {
         "checkpoint": str(args.source.relative_to(ROOT) if args.source.is_relative_to(ROOT)
                           else args.source),
         "sha256_16": hashlib.sha256(args.source.read_bytes()).hexdigest()[:16],
-        "changed": {"prior_iterations": [old, args.prior_iterations]},
+        "changed": changed,
         "note": "same weights, not retrained; held-out numbers of the source dropped",
     }
     args.out.mkdir(parents=True, exist_ok=True)
+    use = args.out.relative_to(ROOT) if args.out.resolve().is_relative_to(ROOT) else args.out
     dest = save_checkpoint(model, args.out / "generator.pt", card)
+    icp_line = ("" if "prior_icp_iterations" not in changed else
+                f"- changed: `prior_icp_iterations` {changed['prior_icp_iterations'][0]} -> "
+                f"{changed['prior_icp_iterations'][1]} (the cap of each of those surrogate ICPs)\n")
+    title = ("the shipped lidar-sim generator with a shorter prior" if args.prior_icp_iterations
+             is None else "the shipped lidar-sim generator with a changed prior")
+    iter_line = ("" if old == args.prior_iterations else
+                 f"- changed: `prior_iterations` {old} -> {args.prior_iterations} (the iterated "
+                 f"sector prior runs {args.prior_iterations + 1} surrogate ICPs per scan instead "
+                 f"of {old + 1})\n")
+    measured = ("- measured: `results/frontier/idle-timing/` (row `generator-fast`) and "
+                "`results/lidar-sim-test-full-fast/` (see `docs/status.md`, session 10)\n"
+                if args.prior_icp_iterations is None else "- measured: see `docs/status.md`\n")
     (args.out / "MODEL_CARD.md").write_text(
-        "# `lidar-sim-fast`: the shipped lidar-sim generator with a shorter prior\n\n"
+        f"# `{args.out.name}`: {title}\n\n"
         "Written by `python scripts/derive_fast_generator.py` (nothing here is typed by hand).\n\n"
         f"- weights: those of `{card['derived_from']['checkpoint']}` (SHA-256 "
         f"{card['derived_from']['sha256_16']}...), not retrained\n"
-        f"- changed: `prior_iterations` {old} -> {args.prior_iterations} (the iterated sector prior "
-        f"runs {args.prior_iterations + 1} surrogate ICPs per scan instead of {old + 1})\n"
+        f"{iter_line}"
+        f"{icp_line}"
         "- training of the weights: see `icpbench/checkpoints/lidar-sim/MODEL_CARD.md`\n"
-        "- measured: `results/frontier/idle-timing/` (row `generator-fast`) and "
-        "`results/lidar-sim-test-full-fast/` (see `docs/status.md`, session 10)\n"
-        "- use: `--attack-param generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt`\n")
+        f"{measured}"
+        f"- use: `--attack-param generator.checkpoint={use}/generator.pt`\n")
     print(f"wrote {dest} (prior_iterations {old} -> {args.prior_iterations})")
 
 

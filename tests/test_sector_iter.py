@@ -104,3 +104,28 @@ def test_pgd_from_the_iterated_attack_never_falls_below_it(batch, icp):
     out = PGDAttack(steps=2, init="sector-iter").run(batch, 0.3, surrogate=icp, generator=0)
     assert torch.all(_xy_error(icp, batch, out.scans) >= _xy_error(icp, batch, start) - 1e-9)
     assert out.stats["disp_max"].max() <= 0.3 + 1e-9
+
+
+def test_prior_icp_iterations_reach_the_prior(batch):
+    """``GeneratorConfig.prior_icp_iterations`` is the cap of the prior's surrogate ICPs: the
+    channels equal the attack run with that cap, differ from the default cap's on these scenes
+    (the capped ICP has not converged after 2 iterations), and a cap below 1 is refused; configs
+    written before the field load with the old cap, 25."""
+    from icpbench.learning.network import GeneratorConfig, generator_config
+    from icpbench.learning.prior import prior_channels
+
+    surrogate = PointToPlaneICP()
+    lam = torch.full((3,), 0.3)
+    cfg = generator_config("objects", output="ball", prior="sector-iter", prior_dmax=5.0,
+                           prior_iterations=2, prior_gain=1.0, prior_icp_iterations=2)
+    ch = prior_channels(cfg, batch, lam, surrogate)[..., 0:3].double() * 0.3
+    ref = SectorIterAttack(iterations=2, icp_iterations=2).run(batch, 0.3, surrogate=surrogate,
+                                                                generator=0).scans - batch.scans
+    torch.testing.assert_close(ch, ref, atol=1e-6, rtol=0)
+    default = prior_channels(cfg.with_(prior_icp_iterations=25), batch, lam, surrogate)
+    assert not torch.allclose(default[..., 0:3].double() * 0.3, ch, atol=1e-3)
+    with pytest.raises(InputError, match="prior_icp_iterations"):
+        cfg.with_(prior_icp_iterations=0)
+    old = cfg.to_dict()
+    del old["prior_icp_iterations"]
+    assert GeneratorConfig.from_dict(old).prior_icp_iterations == 25

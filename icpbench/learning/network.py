@@ -126,6 +126,9 @@ class GeneratorConfig:
             iterated analytic attack instead (:func:`icpbench.learning.prior.iterated_prior_batch`,
             per budget; the model then needs the surrogate ICP at run time).
         prior_iterations, prior_step: iterations and step (fraction of lambda) of that attack.
+        prior_icp_iterations: iteration cap of the surrogate ICP that attack runs to find where
+            each iterate lands (25, the training surrogate's cap; the lidar evaluation ICP's cap
+            is 100).
     """
 
     a: float = 2.0
@@ -148,6 +151,7 @@ class GeneratorConfig:
     prior_dmax: float = 5.0
     prior_iterations: int = 8
     prior_step: float = 0.5
+    prior_icp_iterations: int = 25
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -172,6 +176,8 @@ class GeneratorConfig:
         if self.prior_iterations < 0 or not 0 < self.prior_step <= 2:
             raise InputError(f"prior_iterations must be >= 0 and prior_step in (0, 2], got "
                              f"{self.prior_iterations} and {self.prior_step}")
+        if self.prior_icp_iterations < 1:
+            raise InputError(f"prior_icp_iterations must be >= 1, got {self.prior_icp_iterations}")
         if self.prior != "none" and self.output not in ("bounded", "sphere", "ball"):
             raise InputError(f"prior={self.prior!r} needs output='bounded', 'sphere' or 'ball', got "
                              f"{self.output!r}")
@@ -220,7 +226,8 @@ class GeneratorConfig:
 #: Config fields introduced after the first shipped checkpoints, with the value that reproduces
 #: the behaviour of configs written before them.
 _ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0,
-                                  "prior_dmax": 5.0, "prior_iterations": 8, "prior_step": 0.5}
+                                  "prior_dmax": 5.0, "prior_iterations": 8, "prior_step": 0.5,
+                                  "prior_icp_iterations": 25}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).
