@@ -63,7 +63,8 @@ def main() -> None:
         "note": "same weights, not retrained; held-out numbers of the source dropped",
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    use = args.out.relative_to(ROOT) if args.out.resolve().is_relative_to(ROOT) else args.out
+    out = args.out.resolve()
+    use = out.relative_to(ROOT) if out.is_relative_to(ROOT) else out
     dest = save_checkpoint(model, args.out / "generator.pt", card)
     icp_line = ("" if "prior_icp_iterations" not in changed else
                 f"- changed: `prior_icp_iterations` {changed['prior_icp_iterations'][0]} -> "
