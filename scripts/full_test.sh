@@ -8,11 +8,14 @@
 # About 120 CPU minutes with the shipped iterated-prior generator (2.9 s of attack per scan and
 # budget); EXECUTOR=ray spreads the units over the cores (pip install 'icpbench[ray]'; 61 min on
 # 2 cores for the committed results). Resumable: re-run the same command after an interruption.
-# Choose the folder with OUT=..., not with --out (the table step reads $OUT).
+# Choose the folder with OUT=..., not with --out (the table step reads $OUT). BUDGETS=5 and
+# GENERATOR=path/to/generator.pt measure one budget or another checkpoint (e.g. session 11's
+# OUT=results/lidar-sim-test-full-icp100 BUDGETS=5 GENERATOR=icpbench/checkpoints/lidar-sim-icp100/generator.pt).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-results/lidar-sim-test-full}
 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} icpbench run --dataset lidar-sim \
-  --attacks uniform,normal,generator --targets p2plane --budgets 1,2,3,4,5 --samples 372 \
-  --batch-size 4 --executor "${EXECUTOR:-local}" --out "$OUT" "$@"
+  --attacks uniform,normal,generator --targets p2plane --budgets "${BUDGETS:-1,2,3,4,5}" --samples 372 \
+  --batch-size 4 --executor "${EXECUTOR:-local}" --out "$OUT" \
+  ${GENERATOR:+--attack-param "generator.checkpoint=$GENERATOR"} "$@"
 icpbench table "$OUT" --format md --reference generator --out "$OUT/table1.md" > /dev/null
