@@ -68,7 +68,8 @@ def main() -> None:
     dest = save_checkpoint(model, args.out / "generator.pt", card)
     icp_line = ("" if "prior_icp_iterations" not in changed else
                 f"- changed: `prior_icp_iterations` {changed['prior_icp_iterations'][0]} -> "
-                f"{changed['prior_icp_iterations'][1]} (the cap of every surrogate ICP the iterated prior runs)\n")
+                f"{changed['prior_icp_iterations'][1]} (the cap of every surrogate ICP the "
+                "iterated prior runs)\n")
     title = ("the shipped lidar-sim generator with a shorter prior" if args.prior_icp_iterations
              is None else "the shipped lidar-sim generator with a changed prior")
     iter_line = ("" if old == args.prior_iterations else
