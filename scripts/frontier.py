@@ -4,7 +4,8 @@ For each attack configuration (normal, sector, the generator, the generator foll
 projected gradient steps, PGD with 5, 10 and 30 steps from a random start and with 5 and 10 steps
 from the sector attack's output, the iterated analytic attack ``sector-iter`` and PGD-5 from its
 output, the same with 2-5 re-linearisations ``sector-iter-K``, and ``generator-fast``: the
-shipped weights with a 4-iteration prior, scripts/derive_fast_generator.py) runs
+shipped weights with a 4-iteration prior, scripts/derive_fast_generator.py; ``generator-icp100``:
+the same weights with the prior's ICPs capped at 100 iterations) runs
 ``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
 at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
 (resumable: re-running the command continues where it stopped), then writes
@@ -43,6 +44,9 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     # the same recipe trained with that 4-iteration prior (scripts/train_lidar.sh, PRIOR_ITERATIONS=4)
     "generator-iter4": ("generator",
                         ["generator.checkpoint=icpbench/checkpoints/lidar-sim-iter4/generator.pt"]),
+    # the shipped weights, the prior's surrogate ICPs run to the lidar cap (100 instead of 25)
+    "generator-icp100": ("generator",
+                         ["generator.checkpoint=icpbench/checkpoints/lidar-sim-icp100/generator.pt"]),
     "pgd-5": ("pgd", ["pgd.steps=5"]),
     "pgd-10": ("pgd", ["pgd.steps=10"]),
     "pgd-30": ("pgd", ["pgd.steps=30"]),
@@ -129,7 +133,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
-            if r.config in ("normal", "sector", "generator-fast", "generator-iter4"):
+            if r.config in ("normal", "sector", "generator-fast", "generator-iter4",
+                            "generator-icp100"):
                 ax.plot([r.attack_s], [r.err_all_m], "*" if r.config.startswith("generator") else "^",
                         label=r.config)
         ax.set_xscale("log")
