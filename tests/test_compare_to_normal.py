@@ -19,7 +19,8 @@ def _module():
 
 def _rows(attack, errs, conv):
     pairs = enumerate(zip(errs, conv, strict=True))
-    return [{"sample_id": f"s{i}", "attack": attack, "budget": 5.0, "trans_err_xy": e,
+    return [{"sample_id": f"s{i}", "attack": attack, "target": "p2plane", "seed": 0,
+             "budget": 5.0, "trans_err_xy": e,
              "converged": c, "attack_time_s": 0.5} for i, (e, c) in pairs]
 
 
