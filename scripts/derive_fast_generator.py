@@ -39,6 +39,8 @@ def main() -> None:
                     help="re-linearisations of the iterated prior (the source has its own)")
     ap.add_argument("--prior-icp-iterations", type=int, default=None,
                     help="cap of the prior's surrogate ICPs (default: the source's)")
+    ap.add_argument("--prior-icp-stride", type=int, default=None,
+                    help="the prior's surrogate ICPs register every N-th point (default: the source's)")
     ap.add_argument("--out", type=Path, default=ROOT / "icpbench" / "checkpoints" / "lidar-sim-fast")
     args = ap.parse_args()
     loaded = load_checkpoint(args.source)
@@ -53,6 +55,9 @@ def main() -> None:
         changed["prior_icp_iterations"] = [model.config.prior_icp_iterations,
                                            args.prior_icp_iterations]
         model.config = model.config.with_(prior_icp_iterations=args.prior_icp_iterations)
+    if args.prior_icp_stride is not None:
+        changed["prior_icp_stride"] = [model.config.prior_icp_stride, args.prior_icp_stride]
+        model.config = model.config.with_(prior_icp_stride=args.prior_icp_stride)
     card = dict(loaded.card)
     card.pop("heldout_eval", None)
     card["derived_from"] = {
@@ -70,15 +75,20 @@ def main() -> None:
                 f"- changed: `prior_icp_iterations` {changed['prior_icp_iterations'][0]} -> "
                 f"{changed['prior_icp_iterations'][1]} (the cap of every surrogate ICP the "
                 "iterated prior runs)\n")
-    title = ("the shipped lidar-sim generator with a shorter prior" if args.prior_icp_iterations
-             is None else "the shipped lidar-sim generator with a changed prior")
+    stride_line = ("" if "prior_icp_stride" not in changed else
+                   f"- changed: `prior_icp_stride` {changed['prior_icp_stride'][0]} -> "
+                   f"{changed['prior_icp_stride'][1]} (those surrogate ICPs register every "
+                   f"{changed['prior_icp_stride'][1]}-th scan point)\n")
+    shorter_only = args.prior_icp_iterations is None and args.prior_icp_stride is None
+    title = ("the shipped lidar-sim generator with a shorter prior" if shorter_only
+             else "the shipped lidar-sim generator with a changed prior")
     iter_line = ("" if old == args.prior_iterations else
                  f"- changed: `prior_iterations` {old} -> {args.prior_iterations} (the iterated "
                  f"sector prior runs {args.prior_iterations + 1} surrogate ICPs per scan instead "
                  f"of {old + 1})\n")
     measured = ("- measured: `results/frontier/idle-timing/` (row `generator-fast`) and "
                 "`results/lidar-sim-test-full-fast/` (see `docs/status.md`, session 10)\n"
-                if args.prior_icp_iterations is None else "- measured: see `docs/status.md`\n")
+                if shorter_only else "- measured: see `docs/status.md`\n")
     (args.out / "MODEL_CARD.md").write_text(
         f"# `{args.out.name}`: {title}\n\n"
         "Written by `python scripts/derive_fast_generator.py` (nothing here is typed by hand).\n\n"
@@ -86,6 +96,7 @@ def main() -> None:
         f"{card['derived_from']['sha256_16']}...), not retrained\n"
         f"{iter_line}"
         f"{icp_line}"
+        f"{stride_line}"
         "- training of the weights: see `icpbench/checkpoints/lidar-sim/MODEL_CARD.md`\n"
         f"{measured}"
         f"- use: `--attack-param generator.checkpoint={use}/generator.pt`\n")

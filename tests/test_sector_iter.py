@@ -129,3 +129,40 @@ def test_prior_icp_iterations_reach_the_prior(batch):
     old = cfg.to_dict()
     del old["prior_icp_iterations"]
     assert GeneratorConfig.from_dict(old).prior_icp_iterations == 25
+
+
+def test_icp_stride_subsamples_the_surrogate_only(batch, icp):
+    """``icp_stride=k`` runs the surrogate on every k-th point: the reported surrogate error is
+    that of the strided scan, the returned displacement still covers every point within lambda,
+    and on these scenes the full-scan ICP error of the result stays close to the unstrided
+    attack's (the attacked pose of a coherent field barely depends on the subsample).
+    ``GeneratorConfig.prior_icp_stride`` reaches the prior; configs written before it load as 1."""
+    from icpbench.learning.network import GeneratorConfig, generator_config
+    from icpbench.learning.prior import prior_channels
+
+    budget = 0.3
+    full = SectorIterAttack(iterations=3).run(batch, budget, surrogate=icp, generator=0)
+    out = SectorIterAttack(iterations=3, icp_stride=2).run(batch, budget, surrogate=icp, generator=0)
+    strided = Batch.from_samples([batch.samples[i] for i in range(len(batch))])
+    with torch.no_grad():
+        reg = icp.register(out.scans.to(torch.float64)[:, ::2], strided.maps, strided.T_init)
+        e_strided = torch.linalg.norm(pose_error(reg.T, strided.T_gt)[:, :2], dim=-1)
+    torch.testing.assert_close(out.extra["sector_iter_surrogate_xy"].to(torch.float64), e_strided,
+                               atol=1e-9, rtol=0)
+    assert float(out.stats["frac_over_budget"].max()) == 0.0
+    assert (torch.linalg.norm(out.scans - batch.scans, dim=-1) > 0.5 * budget).float().mean() > 0.5
+    e_full, e_out = _xy_error(icp, batch, full.scans), _xy_error(icp, batch, out.scans)
+    assert e_out.mean() > 0.95 * e_full.mean()  # the sector start alone reaches 0.86x
+    with pytest.raises(InputError, match="icp_stride"):
+        SectorIterAttack(icp_stride=0)
+
+    lam = torch.full((3,), budget)
+    cfg = generator_config("objects", output="ball", prior="sector-iter", prior_dmax=5.0,
+                           prior_iterations=3, prior_gain=1.0, prior_icp_stride=2)
+    ch = prior_channels(cfg, batch, lam, icp)[..., 0:3].double() * budget
+    torch.testing.assert_close(ch, out.scans - batch.scans, atol=1e-6, rtol=0)
+    with pytest.raises(InputError, match="prior_icp_stride"):
+        cfg.with_(prior_icp_stride=0)
+    old = cfg.to_dict()
+    del old["prior_icp_stride"]
+    assert GeneratorConfig.from_dict(old).prior_icp_stride == 1

@@ -129,6 +129,8 @@ class GeneratorConfig:
         prior_icp_iterations: iteration cap of the surrogate ICP that attack runs to find where
             each iterate lands (25, the training surrogate's cap; the lidar evaluation ICP's cap
             is 100).
+        prior_icp_stride: those surrogate ICPs register every ``prior_icp_stride``-th scan point
+            (1: all; :class:`~icpbench.attacks.sector_iter.SectorIterAttack` ``icp_stride``).
     """
 
     a: float = 2.0
@@ -152,6 +154,7 @@ class GeneratorConfig:
     prior_iterations: int = 8
     prior_step: float = 0.5
     prior_icp_iterations: int = 25
+    prior_icp_stride: int = 1
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -178,6 +181,8 @@ class GeneratorConfig:
                              f"{self.prior_iterations} and {self.prior_step}")
         if self.prior_icp_iterations < 1:
             raise InputError(f"prior_icp_iterations must be >= 1, got {self.prior_icp_iterations}")
+        if self.prior_icp_stride < 1:
+            raise InputError(f"prior_icp_stride must be >= 1, got {self.prior_icp_stride}")
         if self.prior != "none" and self.output not in ("bounded", "sphere", "ball"):
             raise InputError(f"prior={self.prior!r} needs output='bounded', 'sphere' or 'ball', got "
                              f"{self.output!r}")
@@ -227,7 +232,7 @@ class GeneratorConfig:
 #: the behaviour of configs written before them.
 _ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0,
                                   "prior_dmax": 5.0, "prior_iterations": 8, "prior_step": 0.5,
-                                  "prior_icp_iterations": 25}
+                                  "prior_icp_iterations": 25, "prior_icp_stride": 1}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).
