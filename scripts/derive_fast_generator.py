@@ -1,23 +1,27 @@
-"""Write ``icpbench/checkpoints/lidar-sim-fast/``: the shipped lidar-sim weights with a shorter prior.
+"""Re-save the trained lidar-sim weights with another iterated prior (nothing is trained).
 
-The shipped lidar-sim generator takes the iterated sector attack (``prior="sector-iter"``, 8
-re-linearisations, i.e. 9 surrogate ICPs per scan) as input channels, and that prior is most of
-its cost. Session 10 measured the prior alone with fewer re-linearisations on the 48 frontier
-scans (docs/status.md): its error falls slowly (0.97x -> 0.86x PGD-30's at lambda = 1 m, 0.72x ->
-0.71x at 4 m from 8 to 4 iterations) while its time falls with the number of ICPs. This script
-re-saves the *same weights* with ``prior_iterations`` changed (default 4); nothing is trained, and
-the card says so (``derived_from``: source file, its SHA-256 prefix and the changed setting). The
-source card's held-out numbers belong to the 8-iteration prior and are dropped.
+The lidar-sim generator takes the iterated sector attack (``prior="sector-iter"``) as input
+channels, and that prior is most of its cost and much of its strength. The weights trained in
+session 7 live in ``icpbench/checkpoints/lidar-sim-icp25/`` with the prior they were trained with
+(8 re-linearisations, i.e. 9 surrogate ICPs per scan, each capped at 25 iterations). This script
+re-saves *the same weights* with changed prior settings; the card says so (``derived_from``:
+source file, its SHA-256 prefix and the changed settings) and the source card's held-out numbers,
+which belong to the source's prior, are dropped.
 
+    # the default lidar-sim checkpoint (session 12): prior ICPs run to the evaluation cap, 100
+    python scripts/derive_fast_generator.py --prior-iterations 8 --prior-icp-iterations 100 \
+        --out icpbench/checkpoints/lidar-sim \
+        --title "the default lidar-sim generator: the trained weights, prior ICPs to 100 iterations"
+    # lidar-sim-fast (session 10): a 4-iteration prior
     python scripts/derive_fast_generator.py            # -> icpbench/checkpoints/lidar-sim-fast/
     python scripts/derive_fast_generator.py --prior-iterations 5 --out runs/fast5
-    python scripts/derive_fast_generator.py --prior-iterations 8 --prior-icp-iterations 100 \
-        --out icpbench/checkpoints/lidar-sim-icp100   # the prior's ICPs run to the lidar cap
 
 ``--prior-icp-iterations`` changes the cap of the surrogate ICP the prior runs on each iterate (the
-source's 25 is the training surrogate's cap; the lidar evaluation ICP's is 100).
+source's 25 is the training surrogate's cap; the lidar evaluation ICP's is 100);
+``--prior-icp-stride`` lets those ICPs register every k-th point only.
 
-Use it with ``--attack-param generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt``.
+Use a result with ``--attack-param generator.checkpoint=<out>/generator.pt`` (the default
+``icpbench/checkpoints/lidar-sim/`` is used without it).
 """
 
 from __future__ import annotations
@@ -29,7 +33,9 @@ from pathlib import Path
 from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE = ROOT / "icpbench" / "checkpoints" / "lidar-sim" / "generator.pt"
+#: the trained session-7 weights (prior ICPs capped at 25 iterations); the default ``lidar-sim``
+#: checkpoint is derived from them (prior ICPs to 100, see the module docstring)
+SOURCE = ROOT / "icpbench" / "checkpoints" / "lidar-sim-icp25" / "generator.pt"
 
 
 def main() -> None:
@@ -41,6 +47,7 @@ def main() -> None:
                     help="cap of the prior's surrogate ICPs (default: the source's)")
     ap.add_argument("--prior-icp-stride", type=int, default=None,
                     help="the prior's surrogate ICPs register every N-th point (default: the source's)")
+    ap.add_argument("--title", default=None, help="title of the written MODEL_CARD.md")
     ap.add_argument("--out", type=Path, default=ROOT / "icpbench" / "checkpoints" / "lidar-sim-fast")
     args = ap.parse_args()
     loaded = load_checkpoint(args.source)
@@ -80,8 +87,8 @@ def main() -> None:
                    f"{changed['prior_icp_stride'][1]} (those surrogate ICPs register every "
                    f"{changed['prior_icp_stride'][1]}-th scan point)\n")
     shorter_only = args.prior_icp_iterations is None and args.prior_icp_stride is None
-    title = ("the shipped lidar-sim generator with a shorter prior" if shorter_only
-             else "the shipped lidar-sim generator with a changed prior")
+    title = args.title or ("the trained lidar-sim weights with a shorter prior" if shorter_only
+                           else "the trained lidar-sim weights with a changed prior")
     iter_line = ("" if old == args.prior_iterations else
                  f"- changed: `prior_iterations` {old} -> {args.prior_iterations} (the iterated "
                  f"sector prior runs {args.prior_iterations + 1} surrogate ICPs per scan instead "
@@ -97,7 +104,7 @@ def main() -> None:
         f"{iter_line}"
         f"{icp_line}"
         f"{stride_line}"
-        "- training of the weights: see `icpbench/checkpoints/lidar-sim/MODEL_CARD.md`\n"
+        f"- training of the weights: see `{Path(card['derived_from']['checkpoint']).parent}/MODEL_CARD.md`\n"
         f"{measured}"
         f"- use: `--attack-param generator.checkpoint={use}/generator.pt`\n")
     print(f"wrote {dest} (prior_iterations {old} -> {args.prior_iterations})")

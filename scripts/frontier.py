@@ -3,9 +3,9 @@
 For each attack configuration (normal, sector, the generator, the generator followed by K = 1, 3, 10
 projected gradient steps, PGD with 5, 10 and 30 steps from a random start and with 5 and 10 steps
 from the sector attack's output, the iterated analytic attack ``sector-iter`` and PGD-5 from its
-output, the same with 2-5 re-linearisations ``sector-iter-K``, and ``generator-fast``: the
-shipped weights with a 4-iteration prior, scripts/derive_fast_generator.py; ``generator-icp100``:
-the same weights with the prior's ICPs capped at 100 iterations) runs
+output, the same with 2-5 re-linearisations ``sector-iter-K``, ``generator-fast``: the trained
+weights with a 4-iteration prior, scripts/derive_fast_generator.py, and ``generator-icp25[+K]``:
+the default up to session 11, the same weights with the prior's ICPs capped at 25 iterations) runs
 ``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
 at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
 (resumable: re-running the command continues where it stopped), then writes
@@ -30,23 +30,28 @@ from pathlib import Path
 
 import pandas as pd
 
+_ICP25 = "icpbench/checkpoints/lidar-sim-icp25/generator.pt"
+
 #: name -> (attack, [attack params]); the generator's refinement uses the same surrogate as PGD.
 CONFIGS: dict[str, tuple[str, list[str]]] = {
     "normal": ("normal", []),
     "sector": ("sector", []),
+    # the default lidar-sim generator (since session 12: the trained weights with the prior's
+    # surrogate ICPs run to the lidar cap, 100; session 11 ran it as "generator-icp100")
     "generator": ("generator", []),
     "generator+1": ("generator", ["generator.refine_steps=1"]),
     "generator+3": ("generator", ["generator.refine_steps=3"]),
     "generator+10": ("generator", ["generator.refine_steps=10"]),
-    # the shipped weights with a 4-iteration prior (scripts/derive_fast_generator.py)
+    # the default up to session 11: the same weights, prior ICPs capped at 25 (lidar-sim-icp25)
+    **{f"generator-icp25{s}": ("generator", [f"generator.checkpoint={_ICP25}", *p])
+       for s, p in (("", []), ("+1", ["generator.refine_steps=1"]),
+                    ("+3", ["generator.refine_steps=3"]), ("+10", ["generator.refine_steps=10"]))},
+    # the trained weights with a 4-iteration prior (scripts/derive_fast_generator.py)
     "generator-fast": ("generator",
                        ["generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt"]),
     # the same recipe trained with that 4-iteration prior (scripts/train_lidar.sh, PRIOR_ITERATIONS=4)
     "generator-iter4": ("generator",
                         ["generator.checkpoint=icpbench/checkpoints/lidar-sim-iter4/generator.pt"]),
-    # the shipped weights, the prior's surrogate ICPs run to the lidar cap (100 instead of 25)
-    "generator-icp100": ("generator",
-                         ["generator.checkpoint=icpbench/checkpoints/lidar-sim-icp100/generator.pt"]),
     "pgd-5": ("pgd", ["pgd.steps=5"]),
     "pgd-10": ("pgd", ["pgd.steps=10"]),
     "pgd-30": ("pgd", ["pgd.steps=30"]),
@@ -63,6 +68,7 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
 #: the lines of the plot: configurations that differ only in their number of steps.
 FAMILIES: dict[str, list[str]] = {
     "generator": ["generator", "generator+1", "generator+3", "generator+10"],
+    "generator-icp25": ["generator-icp25", "generator-icp25+1", "generator-icp25+3", "generator-icp25+10"],
     "pgd": ["pgd-5", "pgd-10", "pgd-30"],
     "pgd-sector": ["pgd-5-sector", "pgd-10-sector"],
     "sector-iter": ["sector-iter", "pgd-5-sector-iter"],
@@ -124,8 +130,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
     fig, axes = plt.subplots(1, len(budgets), figsize=(6 * len(budgets), 4.5), squeeze=False)
     for ax, lam in zip(axes[0], budgets, strict=True):
         sub = res[res["budget_m"] == lam]
-        for fam, style in (("generator", "o-"), ("pgd", "s--"), ("pgd-sector", "d:"),
-                           ("sector-iter", "v-."), ("sector-iter-k", "x:")):
+        for fam, style in (("generator", "o-"), ("generator-icp25", "o:"), ("pgd", "s--"),
+                           ("pgd-sector", "d:"), ("sector-iter", "v-."), ("sector-iter-k", "x:")):
             # each family in the order of CONFIGS (more steps), not of the noisy measured time
             f = sub[sub["config"].isin(FAMILIES[fam])]
             f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))
@@ -133,8 +139,7 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
-            if r.config in ("normal", "sector", "generator-fast", "generator-iter4",
-                            "generator-icp100"):
+            if r.config in ("normal", "sector", "generator-fast", "generator-iter4"):
                 ax.plot([r.attack_s], [r.err_all_m], "*" if r.config.startswith("generator") else "^",
                         label=r.config)
         ax.set_xscale("log")

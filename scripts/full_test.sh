@@ -5,12 +5,15 @@
 # $OUT/{results.csv,manifest.json,table1.md} (OUT defaults to results/lidar-sim-test-full) and
 # prints the table.
 #
-# About 120 CPU minutes with the shipped iterated-prior generator (2.9 s of attack per scan and
-# budget); EXECUTOR=ray spreads the units over the cores (pip install 'icpbench[ray]'; 61 min on
-# 2 cores for the committed results). Resumable: re-run the same command after an interruption.
-# Choose the folder with OUT=..., not with --out (the table step reads $OUT). BUDGETS=5 and
-# GENERATOR=path/to/generator.pt measure one budget or another checkpoint (e.g. session 11's
-# OUT=results/lidar-sim-test-full-icp100 BUDGETS=5 GENERATOR=icpbench/checkpoints/lidar-sim-icp100/generator.pt).
+# About 120 CPU minutes with the session-7 generator (prior ICPs capped at 25 iterations, 2.9 s of
+# attack per scan and budget) and about 1.5x that with the default since session 12 (prior ICPs to
+# 100 iterations); EXECUTOR=ray spreads the units over the cores (pip install 'icpbench[ray]').
+# Resumable: re-run the same command after an interruption. Choose the folder with OUT=..., not with
+# --out (the table step reads $OUT). BUDGETS=5 and GENERATOR=path/to/generator.pt measure one
+# budget or another checkpoint. The committed results/lidar-sim-test-full/ holds the session-7
+# default (now icpbench/checkpoints/lidar-sim-icp25/, 61 min on 2 cores with Ray);
+# results/lidar-sim-test-full-icp100/lambda{1..5}/ today's default, one budget per folder
+# (OUT=results/lidar-sim-test-full-icp100/lambda5 BUDGETS=5 EXECUTOR=ray bash scripts/full_test.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-results/lidar-sim-test-full}

@@ -1,5 +1,9 @@
 #!/usr/bin/env bash
-# How the shipped lidar-sim generator icpbench/checkpoints/lidar-sim/generator.pt was trained.
+# How the trained lidar-sim weights icpbench/checkpoints/lidar-sim-icp25/generator.pt were trained.
+# Since session 12 the default checkpoint icpbench/checkpoints/lidar-sim/ re-saves these weights with
+# the prior's surrogate ICPs run to the evaluation cap (100 instead of 25), nothing retrained:
+#   python scripts/derive_fast_generator.py --prior-iterations 8 --prior-icp-iterations 100 \
+#     --out icpbench/checkpoints/lidar-sim --title "..."   (the command in that script's docstring)
 #
 # Session 7 (issue 14, the shipped model): the generator on top of the *iterated* analytic attack
 # (docs/methods.md, "Iterated sector attack" and "Iterated prior"). `prior=sector-iter` feeds the
@@ -58,7 +62,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUNS=${RUNS:-runs}
-DEST=${DEST:-icpbench/checkpoints/lidar-sim}
+DEST=${DEST:-icpbench/checkpoints/lidar-sim-icp25}
 PRIOR_ITERATIONS=${PRIOR_ITERATIONS:-8}
 if [ "${STAGED:-0}" != 1 ] && [ "${RECIPE:-iter}" = iter ]; then
   name=lidar-gen-iter

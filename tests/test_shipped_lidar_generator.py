@@ -1,6 +1,9 @@
 """The shipped lidar-sim generator: loads safely, serves every budget of Table 1 within the budget,
 and attacks real lidar-sim test scans harder than the `normal` baseline."""
 
+import hashlib
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -15,10 +18,19 @@ CKPT = shipped_checkpoint_dir("lidar-sim") / "generator.pt"
 
 
 def test_card_and_resolution():
+    """The default re-saves the trained weights of ``derived_from`` (same tensors, SHA-256 of the
+    source file as recorded) with the prior's ICPs run to 100 iterations; the source's card holds
+    the training chain and its held-out evaluation."""
     lg = load_checkpoint(CKPT)
     assert lg.model.needs_budget and lg.config.output == "ball" and lg.config.conditioned
-    assert lg.config.prior == "sector-iter"
-    card = lg.card
+    assert lg.config.prior == "sector-iter" and lg.config.prior_icp_iterations == 100
+    src = Path(__file__).resolve().parents[1] / lg.card["derived_from"]["checkpoint"]
+    assert hashlib.sha256(src.read_bytes()).hexdigest()[:16] == lg.card["derived_from"]["sha256_16"]
+    trained = load_checkpoint(src)
+    assert trained.config == lg.config.with_(prior_icp_iterations=25)
+    for k, v in trained.model.state_dict().items():
+        assert torch.equal(v, lg.model.state_dict()[k]), k
+    card = trained.card
     assert card["data"]["dataset"] == "lidar-sim" and card["data"]["split"] == "train"
     assert card["train_wall_s"] > 0 and card["epochs_done"] >= 1
     assert set(card["heldout_eval"]) == {"1", "2", "3", "4", "5"}
