@@ -31,6 +31,8 @@ from pathlib import Path
 import pandas as pd
 
 _ICP25 = "icpbench/checkpoints/lidar-sim-icp25/generator.pt"
+#: name suffix -> attack params of the generator followed by K projected gradient steps
+_REFINE: dict[str, list[str]] = {"": [], **{f"+{k}": [f"generator.refine_steps={k}"] for k in (1, 3, 10)}}
 
 #: name -> (attack, [attack params]); the generator's refinement uses the same surrogate as PGD.
 CONFIGS: dict[str, tuple[str, list[str]]] = {
@@ -38,14 +40,10 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "sector": ("sector", []),
     # the default lidar-sim generator (since session 12: the trained weights with the prior's
     # surrogate ICPs run to the lidar cap, 100; session 11 ran it as "generator-icp100")
-    "generator": ("generator", []),
-    "generator+1": ("generator", ["generator.refine_steps=1"]),
-    "generator+3": ("generator", ["generator.refine_steps=3"]),
-    "generator+10": ("generator", ["generator.refine_steps=10"]),
+    **{f"generator{s}": ("generator", p) for s, p in _REFINE.items()},
     # the default up to session 11: the same weights, prior ICPs capped at 25 (lidar-sim-icp25)
     **{f"generator-icp25{s}": ("generator", [f"generator.checkpoint={_ICP25}", *p])
-       for s, p in (("", []), ("+1", ["generator.refine_steps=1"]),
-                    ("+3", ["generator.refine_steps=3"]), ("+10", ["generator.refine_steps=10"]))},
+       for s, p in _REFINE.items()},
     # the trained weights with a 4-iteration prior (scripts/derive_fast_generator.py)
     "generator-fast": ("generator",
                        ["generator.checkpoint=icpbench/checkpoints/lidar-sim-fast/generator.pt"]),
@@ -67,8 +65,7 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
 
 #: the lines of the plot: configurations that differ only in their number of steps.
 FAMILIES: dict[str, list[str]] = {
-    "generator": ["generator", "generator+1", "generator+3", "generator+10"],
-    "generator-icp25": ["generator-icp25", "generator-icp25+1", "generator-icp25+3", "generator-icp25+10"],
+    **{g: [g + s for s in _REFINE] for g in ("generator", "generator-icp25")},
     "pgd": ["pgd-5", "pgd-10", "pgd-30"],
     "pgd-sector": ["pgd-5-sector", "pgd-10-sector"],
     "sector-iter": ["sector-iter", "pgd-5-sector-iter"],
