@@ -165,7 +165,8 @@ def run(
     budgets: Annotated[str | None, typer.Option(
         help="Comma-separated budgets λ (metres). [default: the dataset's]")] = None,
     samples: Annotated[int | None, typer.Option(
-        help="Number of test samples. [default: all]")] = None,
+        help="Number of test samples (the first K of the split; a resumed run may grow it). "
+             "[default: all]")] = None,
     seed: Annotated[str | None, typer.Option(help="Attack seed(s), comma-separated. [default: 0]")]
     = None,
     surrogate: Annotated[str | None, typer.Option(

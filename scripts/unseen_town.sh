@@ -5,7 +5,8 @@
 # Writes $OUT/table1.{md,tex,csv} and $OUT/run/{results.csv,manifest.json}; re-running resumes.
 #
 # Settings (environment):
-#   TOWN=101  SENSOR=hdl64  SAMPLES=48 (test-pass scans)  BUDGETS=1,2,3,4,5
+#   TOWN=101  SENSOR=hdl64  SAMPLES=48 (the first test-pass scans of a shuffled order; a larger
+#   count on the same OUT resumes and adds only the new scans)  BUDGETS=1,2,3,4,5
 #   CHECKPOINT=  (a generator .pt; empty: the shipped lidar-sim generator)
 #   OUT=results/lidar-sim-unseen  EXECUTOR=ray (one worker per core; local: one process)
 # Cost: generating the town and the scans' submaps takes about 2 s of CPU per scan with hdl64, the

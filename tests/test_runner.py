@@ -96,6 +96,28 @@ def test_manifest_and_config_mismatch(tmp_path):
             tmp_path, progress=False)
 
 
+def test_resume_with_more_samples_adds_only_the_new_ones(tmp_path):
+    """Growing --samples on resume computes the new samples only and equals a fresh run of the
+    larger count; shrinking it is refused (the store would hold rows outside the run)."""
+    cfg = dict(dataset="synthetic", attacks=["none", "uniform"], targets=["p2plane"],
+               budgets=[1.0], batch_size=2, dataset_params={"n_samples": 6})
+    run(RunConfig(samples=2, **cfg), tmp_path / "grown", progress=False)
+    calls = []
+    run(RunConfig(samples=5, **cfg), tmp_path / "grown", progress=False, on_unit=calls.append)
+    assert len(calls) == 2 * 2  # samples 2-3 and 4: two batches x two attacks
+    run(RunConfig(samples=5, **cfg), tmp_path / "fresh", progress=False)
+    pd.testing.assert_frame_equal(_sorted(load_results(tmp_path / "grown")),
+                                  _sorted(load_results(tmp_path / "fresh")))
+    assert read_manifest(tmp_path / "grown")["config"]["samples"] == 5
+    with pytest.raises(InputError, match="samples: stored 5, now 3"):
+        run(RunConfig(samples=3, **cfg), tmp_path / "grown", progress=False)
+    calls.clear()
+    run(RunConfig(samples=None, **cfg), tmp_path / "grown", progress=False, on_unit=calls.append)
+    assert len(calls) == 2 and len(load_results(tmp_path / "grown")) == 6 * 2
+    with pytest.raises(InputError, match="samples: stored None, now 6"):
+        run(RunConfig(samples=6, **cfg), tmp_path / "grown", progress=False)
+
+
 def test_resume_refuses_results_of_a_changed_checkpoint(tmp_path):
     """The manifest stores a hash of each generator checkpoint; resuming after the file changed
     (e.g. a newly shipped model) is refused instead of silently mixing old and new results."""

@@ -191,15 +191,28 @@ class RunConfig:
 EXECUTION_FIELDS = ("executor", "strict_files")
 
 
+def _grows(stored: int | None, now: int | None) -> bool:
+    """Whether a sample count ``now`` extends ``stored`` (None: the whole split)."""
+    return now is None or (stored is not None and now >= stored)
+
+
 def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     """The settings (``key: stored X, now Y``) in which two recorded configurations differ,
-    execution fields aside; a key an older manifest lacks counts as its current default."""
+    execution fields aside; a key an older manifest lacks counts as its current default.
+
+    A larger ``samples`` (or None, the whole split) is not a difference: a run covers the first
+    K samples of the split and stores its rows by sample id, so resuming with more samples only
+    adds the rows of the new ones (the old rows are what a fresh run would compute again). A
+    smaller one is, since the store would hold rows outside the run.
+    """
     defaults = asdict(RunConfig())
     out = []
     for k in sorted(set(old) | set(new)):
         if k in EXECUTION_FIELDS:
             continue
         a, b = old.get(k, defaults.get(k)), new.get(k, defaults.get(k))
+        if k == "samples" and _grows(a, b):
+            continue
         if a != b:
             out.append(f"{k}: stored {a!r}, now {b!r}")
     return out
