@@ -43,3 +43,15 @@ def test_summary_ratios_and_missing_folders(tmp_path: Path, frontier) -> None:
 
 def test_summary_of_nothing_is_empty(tmp_path: Path, frontier) -> None:
     assert frontier.summarise(tmp_path, list(frontier.CONFIGS)).empty
+
+
+def test_refinement_families_differ_only_in_steps_and_surrogate_cap(frontier) -> None:
+    """``generator+K`` ascends the 25-iteration surrogate, ``generator+K-icp100`` the 100-iteration
+    evaluation ICP; both start from the default generator and name K steps."""
+    for k in (1, 3, 10):
+        attack, short = frontier.CONFIGS[f"generator+{k}"]
+        attack100, full = frontier.CONFIGS[f"generator+{k}-icp100"]
+        assert attack == attack100 == "generator"
+        assert short == [f"generator.refine_steps={k}"]
+        assert full == [*short, "generator.refine_icp_iterations=100"]
+    assert frontier.FAMILIES["generator-refine100"][0] == "generator"
