@@ -6,7 +6,8 @@ from the sector attack's output, the iterated analytic attack ``sector-iter`` an
 output, the same with 2-5 re-linearisations ``sector-iter-K``, ``generator-fast``: the trained
 weights with a 4-iteration prior, scripts/derive_fast_generator.py, and ``generator-icp25[+K]``:
 the default up to session 11, the same weights with the prior's ICPs capped at 25 iterations, and
-``generator+K-icp100``: the refinement steps through the 100-iteration evaluation ICP) runs
+``generator+K-icp100``: the refinement steps through the 100-iteration evaluation ICP, and
+``sector-iter-K-icp100``: the default generator's prior, ICPs to 100 iterations, K re-linearisations) runs
 ``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
 at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
 (resumable: re-running the command continues where it stopped), then writes
@@ -67,6 +68,10 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "sector-iter": ("sector-iter", []),
     # the same with fewer re-linearisations (the cost / error trade-off of the generator's prior)
     **{f"sector-iter-{k}": ("sector-iter", [f"sector-iter.iterations={k}"]) for k in (2, 3, 4, 5)},
+    # the default generator's prior (surrogate ICPs to 100 iterations) with 2-8 re-linearisations
+    **{f"sector-iter-{k}-icp100": ("sector-iter", [f"sector-iter.iterations={k}",
+                                                   "sector-iter.icp_iterations=100"])
+       for k in (2, 3, 4, 8)},
     "pgd-5-sector-iter": ("pgd", ["pgd.steps=5", "pgd.init=sector-iter"]),
 }
 
@@ -78,6 +83,7 @@ FAMILIES: dict[str, list[str]] = {
     "pgd-sector": ["pgd-5-sector", "pgd-10-sector"],
     "sector-iter": ["sector-iter", "pgd-5-sector-iter"],
     "sector-iter-k": ["sector-iter-2", "sector-iter-3", "sector-iter-4", "sector-iter-5", "sector-iter"],
+    "sector-iter-k-icp100": [f"sector-iter-{k}-icp100" for k in (2, 3, 4, 8)],
 }
 
 
@@ -137,7 +143,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         sub = res[res["budget_m"] == lam]
         for fam, style in (("generator", "o-"), ("generator-refine100", "o--"),
                            ("generator-icp25", "o:"), ("pgd", "s--"),
-                           ("pgd-sector", "d:"), ("sector-iter", "v-."), ("sector-iter-k", "x:")):
+                           ("pgd-sector", "d:"), ("sector-iter", "v-."), ("sector-iter-k", "x:"),
+                           ("sector-iter-k-icp100", "x-")):
             # each family in the order of CONFIGS (more steps), not of the noisy measured time
             f = sub[sub["config"].isin(FAMILIES[fam])]
             f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))
