@@ -10,8 +10,8 @@
 # Writes results/table1.{md,tex,csv} and results/table1-run/{results.csv,manifest.json}.
 # The PGD oracle is left out here (about 10 s per scan and budget); see scripts/oracle.sh.
 # SAMPLES (default 48 of the 372 test scans, both passes) and the Ray executor (one worker per core;
-# EXECUTOR=local for a single process) keep it at about 35 minutes on 2 cores (34 min for the
-# committed run of session 12): the 9 surrogate ICPs (up to 100 iterations each) of the generator's
+# EXECUTOR=local for a single process) keep it at about 40 minutes on 2 cores (40 min for the
+# committed run of session 13): the 9 surrogate ICPs (up to 100 iterations each) of the generator's
 # prior, of sector-iter and of the refined generator dominate.
 set -euo pipefail
 cd "$(dirname "$0")/.."
