@@ -71,6 +71,11 @@ class GeneratorAttack(Attack):
             the surrogate's objective. 0 (default) is the plain one-pass generator.
         refine_step_size: step length of the refinement as a fraction of the budget.
         refine_icp_iterations: iteration cap of the surrogate ICP inside the refinement.
+        keep_prior: beyond the paper, for models with ``prior="sector-iter"``: run the surrogate
+            ICP (capped at the model's ``prior_icp_iterations``) on the prior's own attack and on
+            the corrected output and return, per scan, the one with the larger horizontal error
+            (before any refinement). Two more surrogate ICPs per scan; with a prior capped at the
+            evaluation ICP's iterations the result is never below the prior on that ICP.
     """
 
     name: ClassVar[str] = "generator"
@@ -82,7 +87,10 @@ class GeneratorAttack(Attack):
     def __init__(self, *, strict: bool = False, checkpoint: str | None = None,
                  dataset: str | None = None, icp_preset: str | None = None,
                  device: str = "cpu", refine_steps: int = 0, refine_step_size: float = 0.1,
-                 refine_icp_iterations: int = 25, **params: Any) -> None:
+                 refine_icp_iterations: int = 25, keep_prior: bool = False,
+                 **params: Any) -> None:
+        if not isinstance(keep_prior, bool):
+            raise InputError(f"{self.name} keep_prior must be true or false, got {keep_prior!r}")
         if int(refine_steps) < 0 or int(refine_icp_iterations) < 1 or not refine_step_size > 0:
             raise InputError(f"{self.name} needs refine_steps >= 0, refine_step_size > 0 and "
                              f"refine_icp_iterations >= 1; got {refine_steps}, {refine_step_size}, "
@@ -90,6 +98,9 @@ class GeneratorAttack(Attack):
         super().__init__(strict=strict, checkpoint=checkpoint, dataset=dataset, device=device,
                          refine_steps=int(refine_steps), refine_step_size=float(refine_step_size),
                          refine_icp_iterations=int(refine_icp_iterations), **params)
+        if keep_prior:  # recorded only when set, so that older runs' settings stay comparable
+            self.params["keep_prior"] = True
+        self.keep_prior = keep_prior
         self.checkpoint, self.dataset, self.device = checkpoint, dataset, device
         self.refine_steps = int(refine_steps)
         self.refine_step_size = float(refine_step_size)
@@ -139,7 +150,7 @@ class GeneratorAttack(Attack):
         geo = model.precompute(batch.scans.to(torch.float32)).to(self.device)
         budget = (torch.full((x.shape[0],), float(budget_m), device=self.device)
                   if model.needs_budget else None)
-        prior = None
+        prior, icp = None, surrogate
         if model.needs_prior:  # analytic channels from the map and the true pose (prior models)
             from icpbench.learning.prior import prior_channels
 
@@ -160,9 +171,32 @@ class GeneratorAttack(Attack):
             # bounded output: |displacement| < lambda already, the projection only removes float32
             # rounding at saturation (|u| = 1.0 in float32)
             adv = project_to_ball(batch.scans, adv, float(budget_m))
+        if self.keep_prior:
+            adv = self._keep_prior(batch, adv, prior, budget_m, model.config, icp)
         if self.refine_steps > 0:
             adv = self._refine(batch, adv, budget_m, surrogate)
         return adv
+
+    def _keep_prior(self, batch: Batch, adv: torch.Tensor, prior: torch.Tensor | None,
+                    budget_m: float, config: Any, icp) -> torch.Tensor:
+        """Per scan, the prior's attack where it beats the corrected output ``adv`` (B, N, 3) on
+        the surrogate (see ``keep_prior``); ``prior`` (B, N, 8) holds the prior's displacement
+        divided by the budget in channels 0-2."""
+        from icpbench.core.se3 import pose_error
+        from icpbench.learning.losses import weighted_pose_error, weights
+
+        if prior is None or config.prior != "sector-iter":
+            raise InputError(f"{self.name} keep_prior needs a model with prior='sector-iter'")
+        own = project_to_ball(batch.scans, batch.scans + (prior[..., 0:3].to(
+            "cpu", batch.scans.dtype) * float(budget_m)), float(budget_m))
+        cap = icp.with_max_iterations(config.prior_icp_iterations)
+        err = []
+        for scans in (adv, own):
+            reg = cap.register(scans.to(torch.float64), batch.maps, batch.T_init.to(torch.float64))
+            err.append(weighted_pose_error(pose_error(reg.T, batch.T_gt.to(torch.float64)),
+                                           weights("xy")))
+        use_prior = (err[1] > err[0]).reshape(-1, 1, 1)
+        return torch.where(use_prior, own, adv)
 
     def _refine(self, batch: Batch, adv: torch.Tensor, budget_m: float,
                 surrogate: Target | None) -> torch.Tensor:

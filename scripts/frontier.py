@@ -7,7 +7,8 @@ output, the same with 2-5 re-linearisations ``sector-iter-K``, ``generator-fast`
 weights with a 4-iteration prior, scripts/derive_fast_generator.py, and ``generator-icp25[+K]``:
 the default up to session 11, the same weights with the prior's ICPs capped at 25 iterations, and
 ``generator+K-icp100``: the refinement steps through the 100-iteration evaluation ICP, and
-``sector-iter-K-icp100``: the default generator's prior, ICPs to 100 iterations, K re-linearisations) runs
+``sector-iter-K-icp100``: the default generator's prior, ICPs to 100 iterations, K re-linearisations,
+and ``generator-keep-prior``: the default with ``keep_prior``) runs
 ``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
 at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
 (resumable: re-running the command continues where it stopped), then writes
@@ -49,6 +50,8 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     # surrogate ICPs run to the lidar cap, 100; session 11 ran it as "generator-icp100")
     **{f"generator{s}": ("generator", p) for s, p in _REFINE.items()},
     **{f"generator{s}": ("generator", p) for s, p in _REFINE_100.items()},
+    # the default, per scan the better of its prior's attack and the corrected output (surrogate)
+    "generator-keep-prior": ("generator", ["generator.keep_prior=true"]),
     # the default up to session 11: the same weights, prior ICPs capped at 25 (lidar-sim-icp25)
     **{f"generator-icp25{s}": ("generator", [f"generator.checkpoint={_ICP25}", *p])
        for s, p in _REFINE.items()},
@@ -152,7 +155,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
-            if r.config in ("normal", "sector", "generator-fast", "generator-iter4"):
+            if r.config in ("normal", "sector", "generator-fast", "generator-iter4",
+                            "generator-keep-prior"):
                 ax.plot([r.attack_s], [r.err_all_m], "*" if r.config.startswith("generator") else "^",
                         label=r.config)
         ax.set_xscale("log")

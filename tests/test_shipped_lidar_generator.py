@@ -64,3 +64,33 @@ def test_beats_normal_on_test_scans_within_the_budget(budget):
     assert float(errs["generator"].mean()) > float(errs["normal"].mean()) > 0.5 * budget
     if budget == 1.0:
         assert bool((errs["generator"] > errs["normal"]).all()), errs
+
+
+def test_keep_prior_returns_the_better_of_prior_and_correction():
+    """``keep_prior``: per scan, the larger surrogate error (100-iteration ICP, the prior's cap) of
+    the corrected output and of the prior's own attack, within the budget."""
+    from icpbench.attacks.generator import GeneratorAttack
+    from icpbench.core.errors import InputError
+    from icpbench.core.se3 import pose_error
+
+    ds = registry.datasets.get("lidar-sim")(seed=0, split="test")
+    batch = Batch.from_samples([ds[0], ds[1]])
+    icp, lam = PointToPlaneICP("lidar"), 1.0
+
+    def err(scans):
+        with torch.no_grad():
+            reg = icp.register(scans.double(), batch.maps, batch.T_init.double())
+        return pose_error(reg.T, batch.T_gt.double())[:, :2].norm(dim=1)
+
+    plain = GeneratorAttack(dataset="lidar-sim").run(batch, lam, surrogate=icp)
+    keep = GeneratorAttack(dataset="lidar-sim", keep_prior=True).run(batch, lam, surrogate=icp)
+    prior = registry.attacks.get("sector-iter")(icp_iterations=100).run(batch, lam, surrogate=icp)
+    assert float(keep.stats["frac_over_budget"].max()) == 0.0
+    e_plain, e_keep, e_prior = err(plain.scans), err(keep.scans), err(prior.scans)
+    assert torch.all(e_keep >= e_plain - 1e-9), (e_keep, e_plain)
+    # the prior is rebuilt from its float32 channels: equal to sector-iter's output up to rounding
+    assert torch.all(e_keep >= e_prior - 1e-3), (e_keep, e_prior)
+    assert GeneratorAttack(dataset="lidar-sim", keep_prior=True).settings()["keep_prior"] is True
+    assert "keep_prior" not in GeneratorAttack(dataset="lidar-sim").settings()
+    with pytest.raises(InputError, match="keep_prior"):
+        GeneratorAttack(dataset="lidar-sim", keep_prior="yes")
