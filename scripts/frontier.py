@@ -5,10 +5,10 @@ projected gradient steps, PGD with 5, 10 and 30 steps from a random start and wi
 from the sector attack's output, the iterated analytic attack ``sector-iter`` and PGD-5 from its
 output, the same with 2-5 re-linearisations ``sector-iter-K``, ``generator-fast``: the trained
 weights with a 4-iteration prior, scripts/derive_fast_generator.py, and ``generator-icp25[+K]``:
-the default up to session 11, the same weights with the prior's ICPs capped at 25 iterations, and
-``generator+K-icp100``: the refinement steps through the 100-iteration evaluation ICP, and
-``sector-iter-K-icp100``: the default generator's prior, ICPs to 100 iterations, K re-linearisations,
-and ``generator-keep-prior``: the default with ``keep_prior``) runs
+the default up to session 11, the same weights with the prior's ICPs capped at 25 iterations;
+``generator+K-icp100``: the refinement steps through the 100-iteration evaluation ICP;
+``sector-iter-K-icp100``: the default generator's prior, ICPs to 100 iterations, K re-linearisations;
+``generator-keep-prior``: the default with ``keep_prior``) runs
 ``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
 at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
 (resumable: re-running the command continues where it stopped), then writes
@@ -39,8 +39,8 @@ _REFINE: dict[str, list[str]] = {"": [], **{f"+{k}": [f"generator.refine_steps={
 #: the same steps through the evaluation ICP's 100 iterations (the default's prior cap) instead of
 #: the 25-iteration training surrogate: the best-iterate rule then compares the errors that are
 #: evaluated, so refinement cannot lower the plain generator's error on any scan
-_REFINE_100 = {f"+{k}-icp100": [*p, "generator.refine_icp_iterations=100"]
-               for k, p in ((k, _REFINE[f"+{k}"]) for k in (1, 3, 10))}
+_REFINE_100 = {f"{s}-icp100": [*p, "generator.refine_icp_iterations=100"]
+               for s, p in _REFINE.items() if s}
 
 #: name -> (attack, [attack params]); the generator's refinement uses the same surrogate as PGD.
 CONFIGS: dict[str, tuple[str, list[str]]] = {
