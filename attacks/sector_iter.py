@@ -58,6 +58,9 @@ class SectorIterAttack(Attack):
             (1: all). The scans of the lidar datasets are random draws, so a stride is a uniform
             subsample; the attacked pose of a coherent displacement field barely depends on it,
             while the surrogate's cost falls about ``icp_stride``-fold.
+        icp_nn_reuse: the surrogate ICP's approximate correspondence search (``ICPConfig.nn_reuse_m``,
+            metres): a point keeps its map row while it moves less than this since its last
+            KD-tree query. 0 (default): exact nearest neighbours.
     """
 
     name: ClassVar[str] = "sector-iter"
@@ -69,7 +72,7 @@ class SectorIterAttack(Attack):
 
     def __init__(self, *, strict: bool = False, iterations: int = 8, step_size: float = 0.5,
                  icp_iterations: int = 25, d_max: float | None = None, icp_stride: int = 1,
-                 **params: Any) -> None:
+                 icp_nn_reuse: float = 0.0, **params: Any) -> None:
         if int(iterations) < 0 or int(icp_iterations) < 1 or int(icp_stride) < 1:
             raise InputError(f"{self.name} needs iterations >= 0, icp_iterations >= 1 and "
                              f"icp_stride >= 1, got {iterations}, {icp_iterations} and {icp_stride}")
@@ -85,6 +88,11 @@ class SectorIterAttack(Attack):
         self.icp_iterations = int(icp_iterations)
         self.d_max = None if d_max is None else float(d_max)
         self.icp_stride = int(icp_stride)
+        if not (np.isfinite(float(icp_nn_reuse)) and float(icp_nn_reuse) >= 0):
+            raise InputError(f"{self.name} icp_nn_reuse must be >= 0 metres, got {icp_nn_reuse}")
+        self.icp_nn_reuse = float(icp_nn_reuse)
+        if self.icp_nn_reuse > 0:  # recorded only when set, so that older runs stay comparable
+            self.params["icp_nn_reuse"] = self.icp_nn_reuse
 
     def _gate(self, icp: Target) -> float:
         if self.d_max is not None:
@@ -97,6 +105,10 @@ class SectorIterAttack(Attack):
         if surrogate is None:
             raise InputError(f"{self.name} needs a surrogate ICP target (--surrogate p2plane)")
         icp = surrogate.with_max_iterations(self.icp_iterations)
+        if self.icp_nn_reuse > 0:
+            if getattr(icp, "config", None) is None:
+                raise InputError(f"{self.name} icp_nn_reuse needs a surrogate built on ICPConfig")
+            icp = type(icp)(icp.config.with_(nn_reuse_m=self.icp_nn_reuse))
         d_max = self._gate(icp)
         clean = batch.scans.detach().to(torch.float64).cpu().numpy()
         T_gt = batch.T_gt.detach().to(torch.float64).cpu().numpy()

@@ -75,6 +75,11 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     **{f"sector-iter-{k}-icp100": ("sector-iter", [f"sector-iter.iterations={k}",
                                                    "sector-iter.icp_iterations=100"])
        for k in (2, 3, 4, 8)},
+    # the same with the surrogate's approximate correspondence search (rows kept while a point
+    # moves less than R cm since its last query; ICPConfig.nn_reuse_m)
+    **{f"sector-iter-{k}-icp100-reuse{r}": ("sector-iter", [
+        f"sector-iter.iterations={k}", "sector-iter.icp_iterations=100",
+        f"sector-iter.icp_nn_reuse={r / 100:g}"]) for k in (2, 3, 4, 8) for r in (2, 5, 10)},
     "pgd-5-sector-iter": ("pgd", ["pgd.steps=5", "pgd.init=sector-iter"]),
 }
 

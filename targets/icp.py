@@ -53,6 +53,12 @@ class ICPConfig:
             (``damping * trace(H) / 6``); keeps degenerate (planar/collinear) scans finite.
         min_correspondences: fewer inliers than this marks the sample ``too_few_correspondences``.
         kdtree_workers: threads of the KD-tree query.
+        nn_reuse_m: beyond dICP, an *approximate* correspondence search: a point keeps its map
+            row (point and normal) while it stays within this distance (metres) of where it was
+            last queried, even where the exact cache would re-query it. 0 (default): exact nearest
+            neighbours. On a planar wall the row's plane is the same either way, so the
+            point-to-plane residual barely changes; it saves the KD-tree queries of points
+            that slide a few millimetres per iteration (attacked scans, docs/performance.md).
         backprop: how gradients reach the scan: ``"unrolled"`` (dICP, through every iteration)
             or ``"implicit"`` (the iterations run without a graph; the gradient is the
             implicit-function derivative of the final pose, exact at a converged pose; the pose
@@ -68,6 +74,7 @@ class ICPConfig:
     damping: float = 1e-9
     min_correspondences: int = 6
     kdtree_workers: int = 1
+    nn_reuse_m: float = 0.0
     backprop: Backprop = "unrolled"
 
     def __post_init__(self) -> None:
@@ -77,6 +84,8 @@ class ICPConfig:
             raise InputError(f"tol must be > 0, got {self.tol}")
         if self.backprop not in ("unrolled", "implicit"):
             raise InputError(f"backprop must be 'unrolled' or 'implicit', got {self.backprop!r}")
+        if not (np.isfinite(self.nn_reuse_m) and self.nn_reuse_m >= 0):
+            raise InputError(f"nn_reuse_m must be a finite number >= 0 (metres), got {self.nn_reuse_m}")
         for name in ("cauchy_c", "d_max"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
@@ -169,7 +178,7 @@ def icp(
     converged = torch.zeros(B, dtype=torch.bool)
     n_inliers = torch.zeros(B, dtype=torch.long)
     query_bound = np.inf if cfg.d_max is None else (cfg.d_max * (3.0 if cfg.soft_dmax else 1.0))
-    nn = _Correspondences(maps, p.detach(), finite, dtype, bound=query_bound)
+    nn = _Correspondences(maps, p.detach(), finite, dtype, bound=query_bound, reuse=cfg.nn_reuse_m)
 
     H_last = torch.zeros(B, 6, 6, dtype=dtype)
     implicit = cfg.backprop == "implicit" and scans.requires_grad and torch.is_grad_enabled()
@@ -236,10 +245,11 @@ class _Correspondences:
     _FAR_MARGIN = 1e-4  # relative to the bound: far above the float32 rounding of a distance
 
     def __init__(self, maps: Sequence[MapIndex], p: torch.Tensor, finite: torch.Tensor,
-                 dtype: torch.dtype, bound: float = np.inf) -> None:
+                 dtype: torch.dtype, bound: float = np.inf, reuse: float = 0.0) -> None:
         B, N, _ = p.shape
         self.maps = maps
         self.bound = float(bound)
+        self.reuse = float(reuse)
         firsts: dict[int, int] = {}  # one table entry per distinct map object
         tables, offsets, off = [], [], 0
         for m in maps:
@@ -285,6 +295,9 @@ class _Correspondences:
                 far = np.isfinite(d1) & (d1 > self.bound)
                 self.slack[b, sel[far]] = np.maximum(
                     self.slack[b, sel[far]], d1[far] - self.bound * (1.0 + self._FAR_MARGIN))
+            if self.reuse > 0:  # approximate (ICPConfig.nn_reuse_m); found rows only
+                ok = self.found[b, sel]
+                self.slack[b, sel[ok]] = np.maximum(self.slack[b, sel[ok]], self.reuse)
             self.queried += sel.size
         return torch.from_numpy(self.idx)
 

@@ -293,3 +293,37 @@ def test_plane_backward_matches_autograd_of_the_formula():
             (got,) = torch.autograd.grad((g * gg).sum() + (H * gH).sum() if use_H
                                          else (g * gg).sum(), q)
             torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_nn_reuse_keeps_rows_within_its_radius_then_requeries_exactly():
+    """``nn_reuse_m`` (approximate correspondences): a point keeps its row while it stays within
+    the radius of where it was last queried, and gets its true nearest map point once it leaves;
+    an ICP with it still recovers a known transform; a negative radius is refused."""
+    from icpbench.core.mapindex import MapIndex
+    from icpbench.targets.icp import ICPConfig, _Correspondences
+
+    s = scene_sample(2_000, 5_000, seed=4)
+    maps = [MapIndex(s.map, s.map_normals)]
+    p = torch.as_tensor(s.scan[None], dtype=torch.float64)
+    finite = torch.ones(1, p.shape[1], dtype=torch.bool)
+    nn = _Correspondences(maps, p, finite, torch.float64, reuse=0.05)
+    q = p.transpose(1, 2).contiguous()
+    first = nn.update(q, torch.ones(1, dtype=torch.bool)).clone()
+    n0 = nn.queried
+    for _ in range(4):  # four moves of 1 cm along x: 4 cm from the query, within the radius
+        q = q + torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)[None, :, None]
+        assert torch.equal(nn.update(q, torch.ones(1, dtype=torch.bool)), first)
+    assert nn.queried == n0  # no point was re-queried
+    q = q + torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64)[None, :, None]  # 6 cm: beyond
+    got = nn.update(q, torch.ones(1, dtype=torch.bool)).numpy()[0]
+    _, want = maps[0].query(q[0].T.numpy())
+    moved_far = np.ones(p.shape[1], dtype=bool)  # every point moved 6 cm > 5 cm
+    assert np.array_equal(got[moved_far], want[moved_far])
+
+    samples = [scene_sample(2_000, 20_000, seed=s, scan_from_map=True) for s in range(2)]
+    _, e_approx = _run(PointToPlaneICP("lidar", d_max=2.0, tol=1e-8, max_iterations=150,
+                                            nn_reuse_m=0.02), samples)
+    assert (e_approx["trans_err"] < 1e-3 * SCENE_SCALE_M).all(), e_approx["trans_err"]
+    assert (torch.rad2deg(e_approx["rot_err"]) < 0.05).all()
+    with pytest.raises(InputError, match="nn_reuse_m"):
+        ICPConfig(nn_reuse_m=-0.01)
