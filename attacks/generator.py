@@ -15,6 +15,7 @@ or with the bounded output, where lambda scales the displacement).
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
@@ -76,6 +77,11 @@ class GeneratorAttack(Attack):
             the corrected output and return, per scan, the one with the larger horizontal error
             (before any refinement). Two more surrogate ICPs per scan; with a prior capped at the
             evaluation ICP's iterations the result is never below the prior on that ICP.
+        prior_icp_nn_reuse: beyond the paper, for models with ``prior="sector-iter"``: overrides
+            the checkpoint's ``prior_icp_nn_reuse`` (metres): the prior's surrogate ICPs keep a
+            point's correspondence while it moves less than this (``ICPConfig.nn_reuse_m``,
+            approximate nearest neighbours; docs/performance.md section 12). None: the
+            checkpoint's value.
     """
 
     name: ClassVar[str] = "generator"
@@ -88,7 +94,7 @@ class GeneratorAttack(Attack):
                  dataset: str | None = None, icp_preset: str | None = None,
                  device: str = "cpu", refine_steps: int = 0, refine_step_size: float = 0.1,
                  refine_icp_iterations: int = 25, keep_prior: bool = False,
-                 **params: Any) -> None:
+                 prior_icp_nn_reuse: float | None = None, **params: Any) -> None:
         if not isinstance(keep_prior, bool):
             raise InputError(f"{self.name} keep_prior must be true or false, got {keep_prior!r}")
         if int(refine_steps) < 0 or int(refine_icp_iterations) < 1 or not refine_step_size > 0:
@@ -101,6 +107,12 @@ class GeneratorAttack(Attack):
         if keep_prior:  # recorded only when set, so that older runs' settings stay comparable
             self.params["keep_prior"] = True
         self.keep_prior = keep_prior
+        if prior_icp_nn_reuse is not None:  # recorded only when set, as keep_prior
+            if not (math.isfinite(float(prior_icp_nn_reuse)) and float(prior_icp_nn_reuse) >= 0):
+                raise InputError(f"{self.name} prior_icp_nn_reuse must be >= 0 metres, got "
+                                 f"{prior_icp_nn_reuse}")
+            self.params["prior_icp_nn_reuse"] = float(prior_icp_nn_reuse)
+        self.prior_icp_nn_reuse = None if prior_icp_nn_reuse is None else float(prior_icp_nn_reuse)
         self.checkpoint, self.dataset, self.device = checkpoint, dataset, device
         self.refine_steps = int(refine_steps)
         self.refine_step_size = float(refine_step_size)
@@ -159,8 +171,13 @@ class GeneratorAttack(Attack):
                 from icpbench.targets.p2plane import PointToPlaneICP
 
                 icp = PointToPlaneICP()
-            prior = prior_channels(model.config, batch, torch.full((x.shape[0],), float(budget_m)),
-                                   icp)
+            cfg = model.config
+            if self.prior_icp_nn_reuse is not None:
+                if cfg.prior != "sector-iter":
+                    raise InputError(f"{self.name} prior_icp_nn_reuse needs a model with "
+                                     "prior='sector-iter'")
+                cfg = cfg.with_(prior_icp_nn_reuse=self.prior_icp_nn_reuse)
+            prior = prior_channels(cfg, batch, torch.full((x.shape[0],), float(budget_m)), icp)
             prior = prior.to(self.device)
         adv = model(x, geo, budget, prior)
         # the network runs in float32; add its displacement to the scans in their own precision, so

@@ -18,7 +18,8 @@ which belong to the source's prior, are dropped.
 
 ``--prior-icp-iterations`` changes the cap of the surrogate ICP the prior runs on each iterate (the
 source's 25 is the training surrogate's cap; the lidar evaluation ICP's is 100);
-``--prior-icp-stride`` lets those ICPs register every k-th point only.
+``--prior-icp-stride`` lets those ICPs register every k-th point only; ``--prior-icp-nn-reuse R``
+lets them keep a point's correspondence while it moves less than R metres (approximate).
 
 Use a result with ``--attack-param generator.checkpoint=<out>/generator.pt`` (the default
 ``icpbench/checkpoints/lidar-sim/`` is used without it).
@@ -47,6 +48,9 @@ def main() -> None:
                     help="cap of the prior's surrogate ICPs (default: the source's)")
     ap.add_argument("--prior-icp-stride", type=int, default=None,
                     help="the prior's surrogate ICPs register every N-th point (default: the source's)")
+    ap.add_argument("--prior-icp-nn-reuse", type=float, default=None,
+                    help="the prior's surrogate ICPs keep a point's correspondence while it moves "
+                         "less than this many metres (approximate; default: the source's)")
     ap.add_argument("--title", default=None, help="title of the written MODEL_CARD.md")
     ap.add_argument("--out", type=Path, default=ROOT / "icpbench" / "checkpoints" / "lidar-sim-fast")
     args = ap.parse_args()
@@ -65,6 +69,9 @@ def main() -> None:
     if args.prior_icp_stride is not None:
         changed["prior_icp_stride"] = [model.config.prior_icp_stride, args.prior_icp_stride]
         model.config = model.config.with_(prior_icp_stride=args.prior_icp_stride)
+    if args.prior_icp_nn_reuse is not None:
+        changed["prior_icp_nn_reuse"] = [model.config.prior_icp_nn_reuse, args.prior_icp_nn_reuse]
+        model.config = model.config.with_(prior_icp_nn_reuse=args.prior_icp_nn_reuse)
     card = dict(loaded.card)
     card.pop("heldout_eval", None)
     card["derived_from"] = {
@@ -86,7 +93,12 @@ def main() -> None:
                    f"- changed: `prior_icp_stride` {changed['prior_icp_stride'][0]} -> "
                    f"{changed['prior_icp_stride'][1]} (those surrogate ICPs register every "
                    f"{changed['prior_icp_stride'][1]}-th scan point)\n")
-    shorter_only = args.prior_icp_iterations is None and args.prior_icp_stride is None
+    reuse_line = ("" if "prior_icp_nn_reuse" not in changed else
+                  f"- changed: `prior_icp_nn_reuse` {changed['prior_icp_nn_reuse'][0]:g} -> "
+                  f"{changed['prior_icp_nn_reuse'][1]:g} m (those surrogate ICPs keep a point's "
+                  "correspondence while it moves less than this: approximate nearest neighbours)\n")
+    shorter_only = (args.prior_icp_iterations is None and args.prior_icp_stride is None
+                    and args.prior_icp_nn_reuse is None)
     title = args.title or ("the trained lidar-sim weights with a shorter prior" if shorter_only
                            else "the trained lidar-sim weights with a changed prior")
     iter_line = ("" if old == args.prior_iterations else
@@ -104,6 +116,7 @@ def main() -> None:
         f"{iter_line}"
         f"{icp_line}"
         f"{stride_line}"
+        f"{reuse_line}"
         f"- training of the weights: see `{Path(card['derived_from']['checkpoint']).parent}/MODEL_CARD.md`\n"
         f"{measured}"
         f"- use: `--attack-param generator.checkpoint={use}/generator.pt`\n")

@@ -8,7 +8,8 @@ weights with a 4-iteration prior, scripts/derive_fast_generator.py, and ``genera
 the default up to session 11, the same weights with the prior's ICPs capped at 25 iterations;
 ``generator+K-icp100``: the refinement steps through the 100-iteration evaluation ICP;
 ``sector-iter-K-icp100``: the default generator's prior, ICPs to 100 iterations, K re-linearisations;
-``generator-keep-prior``: the default with ``keep_prior``) runs
+``generator-keep-prior``: the default with ``keep_prior``; ``...-reuseR``: the same with the
+surrogate ICPs' approximate correspondences, rows kept while a point moves less than R cm) runs
 ``icpbench run`` on the same lidar-sim test scans (default: the first 48 of Table 1's test passes)
 at lambda = 1 and 4 m, target p2plane (lidar preset, 100 iterations), into ``OUT/runs/<config>/``
 (resumable: re-running the command continues where it stopped), then writes
@@ -52,6 +53,10 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     **{f"generator{s}": ("generator", p) for s, p in _REFINE_100.items()},
     # the default, per scan the better of its prior's attack and the corrected output (surrogate)
     "generator-keep-prior": ("generator", ["generator.keep_prior=true"]),
+    # the default with its prior's approximate correspondence search (rows kept while a point moves
+    # less than R cm since its last query; GeneratorConfig.prior_icp_nn_reuse)
+    **{f"generator-reuse{r}": ("generator", [f"generator.prior_icp_nn_reuse={r / 100:g}"])
+       for r in (2, 5)},
     # the default up to session 11: the same weights, prior ICPs capped at 25 (lidar-sim-icp25)
     **{f"generator-icp25{s}": ("generator", [f"generator.checkpoint={_ICP25}", *p])
        for s, p in _REFINE.items()},

@@ -14,3 +14,21 @@ def _cache_dir(tmp_path_factory):
     if "ICPBENCH_CACHE" not in os.environ:
         os.environ["ICPBENCH_CACHE"] = str(tmp_path_factory.mktemp("icpbench-cache"))
     yield
+
+
+@pytest.fixture
+def reuse_radii(monkeypatch):
+    """Records the ``reuse`` radius (metres) of every ICP correspondence cache built while the
+    test runs (``icpbench.targets.icp._Correspondences``): one entry per ICP call."""
+    import icpbench.targets.icp as icp_mod
+
+    seen: list[float] = []
+    real = icp_mod._Correspondences
+
+    class Spy(real):
+        def __init__(self, *args, reuse=0.0, **kw):
+            seen.append(reuse)
+            super().__init__(*args, reuse=reuse, **kw)
+
+    monkeypatch.setattr(icp_mod, "_Correspondences", Spy)
+    return seen

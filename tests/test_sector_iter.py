@@ -167,27 +167,17 @@ def test_icp_stride_subsamples_the_surrogate_only(batch, icp):
     assert GeneratorConfig.from_dict(old).prior_icp_stride == 1
 
 
-def test_icp_nn_reuse_reaches_the_surrogate_and_keeps_the_budget(batch, icp, monkeypatch):
+def test_icp_nn_reuse_reaches_the_surrogate_and_keeps_the_budget(batch, icp, reuse_radii):
     """``icp_nn_reuse`` builds the surrogate with ``nn_reuse_m``: the attack still holds the
     budget exactly and stays close to the exact surrogate's attack on the exact ICP; the setting
     is recorded only when set, and a negative radius is refused."""
-    import icpbench.targets.icp as icp_mod
-
-    seen = []
-    real = icp_mod._Correspondences
-
-    class Spy(real):
-        def __init__(self, *args, reuse=0.0, **kw):
-            seen.append(reuse)
-            super().__init__(*args, reuse=reuse, **kw)
-
     budget = 0.3
     exact = SectorIterAttack(iterations=3).run(batch, budget, surrogate=icp, generator=0)
-    monkeypatch.setattr(icp_mod, "_Correspondences", Spy)
+    assert reuse_radii and set(reuse_radii) == {0.0}
+    reuse_radii.clear()
     att = SectorIterAttack(iterations=3, icp_nn_reuse=0.02)
     out = att.run(batch, budget, surrogate=icp, generator=0)
-    monkeypatch.undo()
-    assert seen and set(seen) == {0.02}
+    assert reuse_radii and set(reuse_radii) == {0.02}
     assert float(out.stats["frac_over_budget"].max()) == 0.0
     e_exact, e_out = _xy_error(icp, batch, exact.scans), _xy_error(icp, batch, out.scans)
     assert e_out.mean() > 0.9 * e_exact.mean()

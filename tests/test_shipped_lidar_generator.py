@@ -94,3 +94,26 @@ def test_keep_prior_returns_the_better_of_prior_and_correction():
     assert "keep_prior" not in GeneratorAttack(dataset="lidar-sim").settings()
     with pytest.raises(InputError, match="keep_prior"):
         GeneratorAttack(dataset="lidar-sim", keep_prior="yes")
+
+
+def test_prior_icp_nn_reuse_reaches_the_prior_surrogate(reuse_radii):
+    """``prior_icp_nn_reuse`` overrides the checkpoint's prior setting: every surrogate ICP of the
+    prior runs with that correspondence radius, the budget holds, the setting is recorded only
+    when set, a negative radius is refused, and configs written before the field load as exact."""
+    from icpbench.attacks.generator import GeneratorAttack
+    from icpbench.core.errors import InputError
+    from icpbench.learning.network import GeneratorConfig, generator_config
+
+    ds = registry.datasets.get("lidar-sim")(seed=0, split="test")
+    batch = Batch.from_samples([ds[0]])
+    att = GeneratorAttack(dataset="lidar-sim", prior_icp_nn_reuse=0.05)
+    out = att.run(batch, 1.0, surrogate=PointToPlaneICP("lidar"))
+    assert len(reuse_radii) >= 2 and set(reuse_radii) == {0.05}  # the prior's ICPs, all with the radius
+    assert float(out.stats["frac_over_budget"].max()) == 0.0
+    assert att.settings()["prior_icp_nn_reuse"] == 0.05
+    assert "prior_icp_nn_reuse" not in GeneratorAttack(dataset="lidar-sim").settings()
+    with pytest.raises(InputError, match="prior_icp_nn_reuse"):
+        GeneratorAttack(dataset="lidar-sim", prior_icp_nn_reuse=-0.1)
+    old = generator_config("lidar", prior="sector-iter", output="bounded").to_dict()
+    del old["prior_icp_nn_reuse"]
+    assert GeneratorConfig.from_dict(old).prior_icp_nn_reuse == 0.0

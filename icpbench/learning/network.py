@@ -131,6 +131,8 @@ class GeneratorConfig:
             is 100).
         prior_icp_stride: those surrogate ICPs register every ``prior_icp_stride``-th scan point
             (1: all; :class:`~icpbench.attacks.sector_iter.SectorIterAttack` ``icp_stride``).
+        prior_icp_nn_reuse: those surrogate ICPs' approximate correspondence search, metres
+            (``ICPConfig.nn_reuse_m``; ``SectorIterAttack`` ``icp_nn_reuse``); 0: exact.
     """
 
     a: float = 2.0
@@ -155,6 +157,7 @@ class GeneratorConfig:
     prior_step: float = 0.5
     prior_icp_iterations: int = 25
     prior_icp_stride: int = 1
+    prior_icp_nn_reuse: float = 0.0
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -183,6 +186,9 @@ class GeneratorConfig:
             raise InputError(f"prior_icp_iterations must be >= 1, got {self.prior_icp_iterations}")
         if self.prior_icp_stride < 1:
             raise InputError(f"prior_icp_stride must be >= 1, got {self.prior_icp_stride}")
+        if not (math.isfinite(self.prior_icp_nn_reuse) and self.prior_icp_nn_reuse >= 0):
+            raise InputError(f"prior_icp_nn_reuse must be a finite number >= 0 (metres), got "
+                             f"{self.prior_icp_nn_reuse}")
         if self.prior != "none" and self.output not in ("bounded", "sphere", "ball"):
             raise InputError(f"prior={self.prior!r} needs output='bounded', 'sphere' or 'ball', got "
                              f"{self.output!r}")
@@ -232,7 +238,8 @@ class GeneratorConfig:
 #: the behaviour of configs written before them.
 _ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0,
                                   "prior_dmax": 5.0, "prior_iterations": 8, "prior_step": 0.5,
-                                  "prior_icp_iterations": 25, "prior_icp_stride": 1}
+                                  "prior_icp_iterations": 25, "prior_icp_stride": 1,
+                                  "prior_icp_nn_reuse": 0.0}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).

@@ -99,7 +99,8 @@ def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIn
 
 def iterated_prior_batch(batch: Batch, budget_m: torch.Tensor, icp: Target, d_max: float = PRIOR_DMAX_M,
                          iterations: int = 8, step_size: float = 0.5,
-                         icp_iterations: int = 25, icp_stride: int = 1) -> torch.Tensor:
+                         icp_iterations: int = 25, icp_stride: int = 1,
+                         icp_nn_reuse: float = 0.0) -> torch.Tensor:
     """Prior channels (B, N, 8) float32 of ``prior="sector-iter"`` models (module docstring).
 
     Args:
@@ -107,10 +108,10 @@ def iterated_prior_batch(batch: Batch, budget_m: torch.Tensor, icp: Target, d_ma
         budget_m: (B,) budget of each sample (metres).
         icp: the surrogate ICP that locates the attacked pose (forward only).
         d_max: association gate (metres).
-        iterations, step_size, icp_iterations, icp_stride: of
+        iterations, step_size, icp_iterations, icp_stride, icp_nn_reuse: of
             :class:`~icpbench.attacks.sector_iter.SectorIterAttack` (``icp_iterations``: the cap
             of the surrogate ICP it runs on each iterate; ``icp_stride``: that ICP registers every
-            ``icp_stride``-th point).
+            ``icp_stride``-th point; ``icp_nn_reuse``: its approximate correspondences, metres).
     """
     from icpbench.attacks.sector_iter import SectorIterAttack
 
@@ -119,7 +120,8 @@ def iterated_prior_batch(batch: Batch, budget_m: torch.Tensor, icp: Target, d_ma
         raise InputError(f"need one budget > 0 per sample, got {tuple(lam.shape)} for {len(batch)}")
     out = sector_prior_batch(batch.scans, batch.T_gt, batch.maps, d_max)
     attack = SectorIterAttack(iterations=iterations, step_size=step_size, d_max=d_max,
-                              icp_iterations=icp_iterations, icp_stride=icp_stride)
+                              icp_iterations=icp_iterations, icp_stride=icp_stride,
+                              icp_nn_reuse=icp_nn_reuse)
     for value in torch.unique(lam).tolist():
         idx = torch.nonzero(lam == value)[:, 0]
         sub = batch if idx.numel() == len(batch) else Batch.from_samples(
@@ -149,4 +151,4 @@ def prior_channels(config: Any, batch: Batch, budget_m: torch.Tensor | None,
         raise InputError("a generator with prior='sector-iter' needs the budget and a surrogate ICP")
     return iterated_prior_batch(batch, budget_m, icp, config.prior_dmax, config.prior_iterations,
                                 config.prior_step, config.prior_icp_iterations,
-                                config.prior_icp_stride)
+                                config.prior_icp_stride, config.prior_icp_nn_reuse)
