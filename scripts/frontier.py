@@ -97,6 +97,7 @@ FAMILIES: dict[str, list[str]] = {
     "sector-iter": ["sector-iter", "pgd-5-sector-iter"],
     "sector-iter-k": ["sector-iter-2", "sector-iter-3", "sector-iter-4", "sector-iter-5", "sector-iter"],
     "sector-iter-k-icp100": [f"sector-iter-{k}-icp100" for k in (2, 3, 4, 8)],
+    "sector-iter-k-icp100-reuse5": [f"sector-iter-{k}-icp100-reuse5" for k in (2, 3, 4, 8)],
 }
 
 
@@ -157,7 +158,7 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for fam, style in (("generator", "o-"), ("generator-refine100", "o--"),
                            ("generator-icp25", "o:"), ("pgd", "s--"),
                            ("pgd-sector", "d:"), ("sector-iter", "v-."), ("sector-iter-k", "x:"),
-                           ("sector-iter-k-icp100", "x-")):
+                           ("sector-iter-k-icp100", "x-"), ("sector-iter-k-icp100-reuse5", "+-")):
             # each family in the order of CONFIGS (more steps), not of the noisy measured time
             f = sub[sub["config"].isin(FAMILIES[fam])]
             f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))
@@ -166,7 +167,7 @@ def plot(res: pd.DataFrame, path: Path) -> None:
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
             if r.config in ("normal", "sector", "generator-fast", "generator-iter4",
-                            "generator-keep-prior"):
+                            "generator-keep-prior", "generator-reuse5"):
                 ax.plot([r.attack_s], [r.err_all_m], "*" if r.config.startswith("generator") else "^",
                         label=r.config)
         ax.set_xscale("log")
