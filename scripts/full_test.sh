@@ -14,11 +14,13 @@
 # default (now icpbench/checkpoints/lidar-sim-icp25/, 61 min on 2 cores with Ray);
 # results/lidar-sim-test-full-icp100/lambda{1..5}/ today's default, one budget per folder
 # (OUT=results/lidar-sim-test-full-icp100/lambda5 BUDGETS=5 EXECUTOR=ray bash scripts/full_test.sh).
+# OURS=sector-iter puts another attack in the generator's place (its settings as extra arguments,
+# e.g. --attack-param sector-iter.iterations=3); the table then compares that attack.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-results/lidar-sim-test-full}
 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} icpbench run --dataset lidar-sim \
-  --attacks uniform,normal,generator --targets p2plane --budgets "${BUDGETS:-1,2,3,4,5}" --samples 372 \
+  --attacks "uniform,normal,${OURS:-generator}" --targets p2plane --budgets "${BUDGETS:-1,2,3,4,5}" --samples 372 \
   --batch-size 4 --executor "${EXECUTOR:-local}" --out "$OUT" \
   ${GENERATOR:+--attack-param "generator.checkpoint=$GENERATOR"} "$@"
-icpbench table "$OUT" --format md --reference generator --out "$OUT/table1.md" > /dev/null
+icpbench table "$OUT" --format md --reference "${OURS:-generator}" --out "$OUT/table1.md" > /dev/null
