@@ -58,6 +58,8 @@ class PGDAttack(Attack):
         backprop: gradient of the surrogate ICP: ``"unrolled"`` (through its iterations) or
             ``"implicit"`` (implicit-function derivative of its final pose, no graph through the
             iterations: cheaper per step); None keeps the surrogate's own setting.
+        icp_nn_reuse: the surrogate's approximate correspondence search (``ICPConfig.nn_reuse_m``,
+            metres; the choice of neighbour carries no gradient either way); 0: exact.
     """
 
     name: ClassVar[str] = "pgd"
@@ -70,7 +72,8 @@ class PGDAttack(Attack):
                  weights: str | list[float] = "xy", icp_iterations: int = 25,
                  random_start: bool = True, restarts: int = 1, schedule: str = "constant",
                  final_step_size: float = 0.02, patience: int | None = None,
-                 backprop: str | None = None, init: str | None = None, **params: Any) -> None:
+                 backprop: str | None = None, init: str | None = None, icp_nn_reuse: float = 0.0,
+                 **params: Any) -> None:
         if init is None:
             init = "random" if random_start else "clean"
         if init not in ("random", "clean", "sector", "sector-iter"):
@@ -100,6 +103,11 @@ class PGDAttack(Attack):
         if backprop not in (None, "unrolled", "implicit"):
             raise InputError(f"pgd backprop must be 'unrolled', 'implicit' or None, got {backprop!r}")
         self.backprop = backprop
+        if not (math.isfinite(float(icp_nn_reuse)) and float(icp_nn_reuse) >= 0):
+            raise InputError(f"pgd icp_nn_reuse must be >= 0 metres, got {icp_nn_reuse}")
+        self.icp_nn_reuse = float(icp_nn_reuse)
+        if self.icp_nn_reuse > 0:  # recorded only when set, so that older runs stay comparable
+            self.params["icp_nn_reuse"] = self.icp_nn_reuse
 
     def step_sizes(self, budget_m: float) -> list[float]:
         """Step length (metres) of each of the ``steps`` ascent steps."""
@@ -111,9 +119,16 @@ class PGDAttack(Attack):
     def _surrogate(self, surrogate: Target) -> Target:
         icp = surrogate.with_max_iterations(self.icp_iterations)
         cfg = getattr(icp, "config", None)
-        if self.backprop is None or cfg is None or cfg.backprop == self.backprop:
+        if cfg is None:
+            if self.icp_nn_reuse > 0:
+                raise InputError("pgd icp_nn_reuse needs a surrogate built on ICPConfig")
             return icp
-        return type(icp)(cfg.with_(backprop=self.backprop))
+        changes = {}
+        if self.backprop is not None and cfg.backprop != self.backprop:
+            changes["backprop"] = self.backprop
+        if self.icp_nn_reuse > 0:
+            changes["nn_reuse_m"] = self.icp_nn_reuse
+        return type(icp)(cfg.with_(**changes)) if changes else icp
 
     def _objective(self, icp: Target, batch: Batch, adv: torch.Tensor,
                    idx: torch.Tensor | None = None) -> torch.Tensor:

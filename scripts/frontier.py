@@ -69,6 +69,8 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "pgd-5": ("pgd", ["pgd.steps=5"]),
     "pgd-10": ("pgd", ["pgd.steps=10"]),
     "pgd-30": ("pgd", ["pgd.steps=30"]),
+    # the oracle with its surrogate's approximate correspondences (ICPConfig.nn_reuse_m, 5 cm)
+    "pgd-30-reuse5": ("pgd", ["pgd.steps=30", "pgd.icp_nn_reuse=0.05"]),
     # beyond the list: PGD warm-started from the sector attack's output (cheaper oracle)
     "pgd-5-sector": ("pgd", ["pgd.steps=5", "pgd.init=sector"]),
     "pgd-10-sector": ("pgd", ["pgd.steps=10", "pgd.init=sector"]),

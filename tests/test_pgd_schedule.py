@@ -142,3 +142,18 @@ def test_sector_warm_start_never_below_the_sector_attack(batch):
     assert torch.allclose(out.scans, again.scans)
     with pytest.raises(InputError):
         PGDAttack(init="gradient")
+
+
+def test_icp_nn_reuse_reaches_the_surrogate(batch, reuse_radii):
+    """``icp_nn_reuse``: every surrogate ICP of the ascent runs with the radius, together with the
+    other surrogate settings; the budget holds; recorded only when set; negative refused."""
+    atk = PGDAttack(steps=2, backprop="implicit", icp_nn_reuse=0.05)
+    icp = atk._surrogate(PointToPlaneICP("lidar"))
+    assert icp.config.nn_reuse_m == 0.05 and icp.config.backprop == "implicit"
+    assert icp.config.max_iterations == 25
+    out = atk.run(batch, 0.5, surrogate=PointToPlaneICP("lidar"), generator=0)
+    assert reuse_radii and set(reuse_radii) == {0.05}
+    assert float(out.stats["disp_max"].max()) <= 0.5 + 1e-9
+    assert atk.params["icp_nn_reuse"] == 0.05 and "icp_nn_reuse" not in PGDAttack().params
+    with pytest.raises(InputError, match="icp_nn_reuse"):
+        PGDAttack(icp_nn_reuse=-0.1)
