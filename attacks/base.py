@@ -10,6 +10,7 @@ lambda), so both numbers are reported and never hidden.
 from __future__ import annotations
 
 import hashlib
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -58,6 +59,19 @@ def validate_budget(budget_m: float) -> float:
         raise InputError(f"budget must be a positive finite number of metres <= {MAX_BUDGET:g}, "
                          f"got {budget_m!r}")
     return b
+
+
+def reuse_radius(attack: str, key: str, value: float) -> float:
+    """The approximate-correspondence radius ``value`` (metres, ``ICPConfig.nn_reuse_m``) of
+    ``attack``'s setting ``key``, checked: a finite number >= 0 (0: exact nearest neighbours).
+
+    Raises:
+        InputError: negative or not finite.
+    """
+    r = float(value)
+    if not (math.isfinite(r) and r >= 0):
+        raise InputError(f"{attack} {key} must be a finite number >= 0 (metres), got {value}")
+    return r
 
 
 def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,

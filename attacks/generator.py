@@ -15,7 +15,6 @@ or with the bounded output, where lambda scales the displacement).
 from __future__ import annotations
 
 import hashlib
-import math
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
@@ -23,7 +22,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from icpbench.attacks.base import Attack, project_to_ball
+from icpbench.attacks.base import Attack, project_to_ball, reuse_radius
 from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -107,12 +106,10 @@ class GeneratorAttack(Attack):
         if keep_prior:  # recorded only when set, so that older runs' settings stay comparable
             self.params["keep_prior"] = True
         self.keep_prior = keep_prior
-        if prior_icp_nn_reuse is not None:  # recorded only when set, as keep_prior
-            if not (math.isfinite(float(prior_icp_nn_reuse)) and float(prior_icp_nn_reuse) >= 0):
-                raise InputError(f"{self.name} prior_icp_nn_reuse must be >= 0 metres, got "
-                                 f"{prior_icp_nn_reuse}")
-            self.params["prior_icp_nn_reuse"] = float(prior_icp_nn_reuse)
-        self.prior_icp_nn_reuse = None if prior_icp_nn_reuse is None else float(prior_icp_nn_reuse)
+        self.prior_icp_nn_reuse = (None if prior_icp_nn_reuse is None else
+                                   reuse_radius(self.name, "prior_icp_nn_reuse", prior_icp_nn_reuse))
+        if self.prior_icp_nn_reuse is not None:  # recorded only when set, as keep_prior
+            self.params["prior_icp_nn_reuse"] = self.prior_icp_nn_reuse
         self.checkpoint, self.dataset, self.device = checkpoint, dataset, device
         self.refine_steps = int(refine_steps)
         self.refine_step_size = float(refine_step_size)

@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from icpbench.attacks.base import Attack, project_to_ball
+from icpbench.attacks.base import Attack, project_to_ball, reuse_radius
 from icpbench.core.errors import InputError
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
@@ -103,9 +103,7 @@ class PGDAttack(Attack):
         if backprop not in (None, "unrolled", "implicit"):
             raise InputError(f"pgd backprop must be 'unrolled', 'implicit' or None, got {backprop!r}")
         self.backprop = backprop
-        if not (math.isfinite(float(icp_nn_reuse)) and float(icp_nn_reuse) >= 0):
-            raise InputError(f"pgd icp_nn_reuse must be >= 0 metres, got {icp_nn_reuse}")
-        self.icp_nn_reuse = float(icp_nn_reuse)
+        self.icp_nn_reuse = reuse_radius("pgd", "icp_nn_reuse", icp_nn_reuse)
         if self.icp_nn_reuse > 0:  # recorded only when set, so that older runs stay comparable
             self.params["icp_nn_reuse"] = self.icp_nn_reuse
 
@@ -119,16 +117,12 @@ class PGDAttack(Attack):
     def _surrogate(self, surrogate: Target) -> Target:
         icp = surrogate.with_max_iterations(self.icp_iterations)
         cfg = getattr(icp, "config", None)
-        if cfg is None:
-            if self.icp_nn_reuse > 0:
-                raise InputError("pgd icp_nn_reuse needs a surrogate built on ICPConfig")
-            return icp
-        changes = {}
-        if self.backprop is not None and cfg.backprop != self.backprop:
+        changes: dict[str, Any] = {}
+        if self.backprop is not None and cfg is not None and cfg.backprop != self.backprop:
             changes["backprop"] = self.backprop
         if self.icp_nn_reuse > 0:
             changes["nn_reuse_m"] = self.icp_nn_reuse
-        return type(icp)(cfg.with_(**changes)) if changes else icp
+        return icp.with_settings(**changes) if changes else icp
 
     def _objective(self, icp: Target, batch: Batch, adv: torch.Tensor,
                    idx: torch.Tensor | None = None) -> torch.Tensor:

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from icpbench.analysis import sector_math as sector
-from icpbench.attacks.base import Attack
+from icpbench.attacks.base import Attack, reuse_radius
 from icpbench.core.errors import InputError
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
@@ -88,9 +88,7 @@ class SectorIterAttack(Attack):
         self.icp_iterations = int(icp_iterations)
         self.d_max = None if d_max is None else float(d_max)
         self.icp_stride = int(icp_stride)
-        if not (np.isfinite(float(icp_nn_reuse)) and float(icp_nn_reuse) >= 0):
-            raise InputError(f"{self.name} icp_nn_reuse must be >= 0 metres, got {icp_nn_reuse}")
-        self.icp_nn_reuse = float(icp_nn_reuse)
+        self.icp_nn_reuse = reuse_radius(self.name, "icp_nn_reuse", icp_nn_reuse)
         if self.icp_nn_reuse > 0:  # recorded only when set, so that older runs stay comparable
             self.params["icp_nn_reuse"] = self.icp_nn_reuse
 
@@ -106,9 +104,7 @@ class SectorIterAttack(Attack):
             raise InputError(f"{self.name} needs a surrogate ICP target (--surrogate p2plane)")
         icp = surrogate.with_max_iterations(self.icp_iterations)
         if self.icp_nn_reuse > 0:
-            if getattr(icp, "config", None) is None:
-                raise InputError(f"{self.name} icp_nn_reuse needs a surrogate built on ICPConfig")
-            icp = type(icp)(icp.config.with_(nn_reuse_m=self.icp_nn_reuse))
+            icp = icp.with_settings(nn_reuse_m=self.icp_nn_reuse)
         d_max = self._gate(icp)
         clean = batch.scans.detach().to(torch.float64).cpu().numpy()
         T_gt = batch.T_gt.detach().to(torch.float64).cpu().numpy()

@@ -68,7 +68,24 @@ class Target(ABC):
         that must survive override this."""
         if self.config is None:
             return self
-        return type(self)(self.config.with_(max_iterations=int(n)))
+        return self.with_settings(max_iterations=int(n))
+
+    def with_settings(self, **changes: Any) -> Target:
+        """A target like this one with some ``ICPConfig`` fields replaced (e.g. an attack's
+        surrogate with its own iteration cap, gradient mode or correspondence search).
+
+        Default: ``type(self)(self.config.with_(**changes))`` by the constructor contract; targets
+        with other constructor settings that must survive override this.
+
+        Raises:
+            InputError: the target has no ``config`` to change.
+        """
+        if self.config is None:
+            from icpbench.core.errors import InputError
+
+            raise InputError(f"target {self.name!r} has no ICP settings to change "
+                             f"({', '.join(sorted(changes))})")
+        return type(self)(self.config.with_(**changes))
 
     @abstractmethod
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray) -> Any:
