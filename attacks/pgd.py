@@ -47,8 +47,12 @@ class PGDAttack(Attack):
         init: ``"random"``, ``"clean"``, ``"sector"`` (the sector attack's output, which moves
             every associated point by the budget along its map normal; the ascent then starts
             from the one-step worst case) or ``"sector-iter"`` (the iterated analytic attack's
-            output with its default settings, :mod:`icpbench.attacks.sector_iter`).
-            None: ``"random"`` if ``random_start`` else ``"clean"``.
+            output, :mod:`icpbench.attacks.sector_iter`, with its default settings or
+            ``init_params``). None: ``"random"`` if ``random_start`` else ``"clean"``.
+        init_params: settings of the ``"sector-iter"`` start (e.g. ``{"iterations": 4,
+            "icp_iterations": 100, "icp_nn_reuse": 0.05}``, the names of
+            :class:`~icpbench.attacks.sector_iter.SectorIterAttack`); None: its defaults. Refused
+            with any other ``init``.
         restarts: independent random starts; the best result per scan is kept.
         schedule: ``"constant"`` (every step ``step_size``) or ``"cosine"`` (from ``step_size``
             down to ``final_step_size`` on a half cosine over ``steps``).
@@ -73,7 +77,7 @@ class PGDAttack(Attack):
                  random_start: bool = True, restarts: int = 1, schedule: str = "constant",
                  final_step_size: float = 0.02, patience: int | None = None,
                  backprop: str | None = None, init: str | None = None, icp_nn_reuse: float = 0.0,
-                 **params: Any) -> None:
+                 init_params: dict[str, Any] | None = None, **params: Any) -> None:
         if init is None:
             init = "random" if random_start else "clean"
         if init not in ("random", "clean", "sector", "sector-iter"):
@@ -85,6 +89,9 @@ class PGDAttack(Attack):
                          restarts=restarts, schedule=schedule, final_step_size=final_step_size,
                          patience=patience, backprop=backprop, init=init, **params)
         self.init = init
+        self._init_attack = self._make_init_attack(init, init_params)
+        if init_params:  # recorded only when set, so that older runs stay comparable
+            self.params["init_params"] = dict(init_params)
         if steps < 1 or restarts < 1:
             raise InputError("pgd needs steps >= 1 and restarts >= 1")
         if not step_size > 0:
@@ -144,11 +151,9 @@ class PGDAttack(Attack):
         for _ in range(self.restarts):
             if self.init == "sector":
                 adv = self.sector_start(batch, budget_m, icp).to(torch.float64)
-            elif self.init == "sector-iter":
-                from icpbench.attacks.sector_iter import SectorIterAttack
-
-                adv = SectorIterAttack()._perturb(batch, budget_m, surrogate=surrogate,
-                                                  generator=generator)[0].to(torch.float64)
+            elif self._init_attack is not None:
+                adv = self._init_attack._perturb(batch, budget_m, surrogate=surrogate,
+                                                 generator=generator)[0].to(torch.float64)
             elif self.random_start:
                 d = generator.randn(*clean.shape[1:], dtype=torch.float64)  # per-sample streams
                 d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
@@ -158,6 +163,21 @@ class PGDAttack(Attack):
                 adv = clean.clone()
             best, best_val = self._ascend(icp, batch, clean, adv, budget_m, best, best_val)
         return best.to(batch.scans.dtype)
+
+    @staticmethod
+    def _make_init_attack(init: str, init_params: dict[str, Any] | None) -> Attack | None:
+        """The iterated analytic attack of ``init="sector-iter"`` (None for the other starts),
+        its settings checked now so that a bad one fails before any scan is attacked."""
+        if init != "sector-iter":
+            if init_params:
+                raise InputError(f"pgd init_params apply to init='sector-iter' only, got init={init!r}")
+            return None
+        from icpbench.attacks.sector_iter import SectorIterAttack
+        from icpbench.core.registry import check_params
+
+        settings = check_params("pgd init_params (sector-iter)", SectorIterAttack.param_types(),
+                                init_params or {})
+        return SectorIterAttack(**settings)
 
     @staticmethod
     def sector_start(batch: Batch, budget_m: float, icp: Target) -> torch.Tensor:

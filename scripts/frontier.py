@@ -88,6 +88,17 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
         f"sector-iter.iterations={k}", "sector-iter.icp_iterations=100",
         f"sector-iter.icp_nn_reuse={r / 100:g}"]) for k in (2, 3, 4, 8) for r in (2, 5, 10)},
     "pgd-5-sector-iter": ("pgd", ["pgd.steps=5", "pgd.init=sector-iter"]),
+    # PGD-K warm-started from sector-iter-J-icp100-reuse5, its steps through the 100-iteration
+    # surrogate on the same correspondences with the implicit gradient ("-s25": through PGD's own
+    # 25-iteration unrolled surrogate instead)
+    **{f"pgd-{k}-sector-iter-{j}-icp100-reuse5": ("pgd", [
+        f"pgd.steps={k}", "pgd.init=sector-iter",
+        f"pgd.init_params={{iterations: {j}, icp_iterations: 100, icp_nn_reuse: 0.05}}",
+        "pgd.icp_iterations=100", "pgd.icp_nn_reuse=0.05", "pgd.backprop=implicit"])
+       for k, j in ((1, 8), (2, 8), (3, 4), (5, 4))},
+    "pgd-3-sector-iter-8-icp100-reuse5-s25": ("pgd", [
+        "pgd.steps=3", "pgd.init=sector-iter",
+        "pgd.init_params={iterations: 8, icp_iterations: 100, icp_nn_reuse: 0.05}"]),
 }
 
 #: the lines of the plot: configurations that differ only in their number of steps.

@@ -106,6 +106,29 @@ def test_pgd_from_the_iterated_attack_never_falls_below_it(batch, icp):
     assert out.stats["disp_max"].max() <= 0.3 + 1e-9
 
 
+def test_pgd_init_params_set_the_iterated_start(batch, icp):
+    """``init_params`` configure the sector-iter start: the ascent never ends below that
+    configured attack's objective, the start is not the default one on these scenes, the settings
+    are recorded, and unknown settings or settings without ``init="sector-iter"`` are refused."""
+    from icpbench.attacks.pgd import PGDAttack
+
+    settings = {"iterations": 1, "icp_iterations": 3}
+    start = SectorIterAttack(**settings).run(batch, 0.3, surrogate=icp, generator=0).scans
+    default = SectorIterAttack().run(batch, 0.3, surrogate=icp, generator=0).scans
+    assert not torch.allclose(start, default, atol=1e-3)
+    atk = PGDAttack(steps=1, init="sector-iter", init_params=settings, icp_iterations=3)
+    out = atk.run(batch, 0.3, surrogate=icp, generator=0)
+    surrogate = icp.with_max_iterations(3)
+    assert torch.all(_xy_error(surrogate, batch, out.scans)
+                     >= _xy_error(surrogate, batch, start) - 1e-9)
+    assert out.stats["disp_max"].max() <= 0.3 + 1e-9
+    assert atk.params["init_params"] == settings and "init_params" not in PGDAttack().params
+    with pytest.raises(InputError, match="icp_iters"):
+        PGDAttack(init="sector-iter", init_params={"icp_iters": 3})
+    with pytest.raises(InputError, match="init_params"):
+        PGDAttack(init="sector", init_params=settings)
+
+
 def test_prior_icp_iterations_reach_the_prior(batch):
     """``GeneratorConfig.prior_icp_iterations`` is the cap of the prior's surrogate ICPs: the
     channels equal the attack run with that cap, differ from the default cap's on these scenes
