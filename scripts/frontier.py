@@ -96,6 +96,8 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
         f"pgd.init_params={{iterations: {j}, icp_iterations: 100, icp_nn_reuse: 0.05}}",
         "pgd.icp_iterations=100", "pgd.icp_nn_reuse=0.05", "pgd.backprop=implicit"])
        for k, j in ((1, 8), (2, 8), (3, 4), (5, 4))},
+    # the registered cheaper oracle (its defaults are pgd-2-sector-iter-8-icp100-reuse5's settings)
+    "pgd-warm": ("pgd-warm", []),
     "pgd-3-sector-iter-8-icp100-reuse5-s25": ("pgd", [
         "pgd.steps=3", "pgd.init=sector-iter",
         "pgd.init_params={iterations: 8, icp_iterations: 100, icp_nn_reuse: 0.05}"]),

@@ -157,3 +157,25 @@ def test_icp_nn_reuse_reaches_the_surrogate(batch, reuse_radii):
     assert atk.params["icp_nn_reuse"] == 0.05 and "icp_nn_reuse" not in PGDAttack().params
     with pytest.raises(InputError, match="icp_nn_reuse"):
         PGDAttack(icp_nn_reuse=-0.1)
+
+
+def test_pgd_warm_is_pgd_with_the_cheaper_oracles_settings(batch):
+    """``pgd-warm`` is registered, equals ``pgd`` run with its settings (sector-iter start, 2
+    steps, 100-iteration surrogate with 5 cm reuse, implicit gradient), keeps the budget and
+    records its start; another start drops the default start settings."""
+    from icpbench.attacks.pgd_warm import WARM_START, WarmPGDAttack
+    from icpbench.core import registry
+
+    assert registry.attacks.get("pgd-warm") is WarmPGDAttack
+    assert WarmPGDAttack().params["init_params"] == WARM_START
+    small = {"iterations": 1, "icp_iterations": 3}
+    warm = WarmPGDAttack(init_params=small, icp_iterations=3)
+    assert warm.steps == 2 and warm.backprop == "implicit" and warm.icp_nn_reuse == 0.05
+    plain = PGDAttack(steps=2, init="sector-iter", init_params=small, icp_iterations=3,
+                      icp_nn_reuse=0.05, backprop="implicit")
+    surrogate = PointToPlaneICP("lidar")
+    out = warm.run(batch, 0.5, surrogate=surrogate, generator=0)
+    ref = plain.run(batch, 0.5, surrogate=surrogate, generator=0)
+    assert torch.equal(out.scans, ref.scans)
+    assert float(out.stats["disp_max"].max()) <= 0.5 + 1e-9
+    assert "init_params" not in WarmPGDAttack(init="sector").params
