@@ -113,6 +113,9 @@ FAMILIES: dict[str, list[str]] = {
     "sector-iter-k": ["sector-iter-2", "sector-iter-3", "sector-iter-4", "sector-iter-5", "sector-iter"],
     "sector-iter-k-icp100": [f"sector-iter-{k}-icp100" for k in (2, 3, 4, 8)],
     "sector-iter-k-icp100-reuse5": [f"sector-iter-{k}-icp100-reuse5" for k in (2, 3, 4, 8)],
+    # the cheaper oracle: its start, then 1 and 2 PGD steps (pgd-warm = 2)
+    "pgd-sector-iter-8": ["sector-iter-8-icp100-reuse5", "pgd-1-sector-iter-8-icp100-reuse5",
+                          "pgd-2-sector-iter-8-icp100-reuse5"],
 }
 
 
@@ -173,11 +176,14 @@ def plot(res: pd.DataFrame, path: Path) -> None:
         for fam, style in (("generator", "o-"), ("generator-refine100", "o--"),
                            ("generator-icp25", "o:"), ("pgd", "s--"),
                            ("pgd-sector", "d:"), ("sector-iter", "v-."), ("sector-iter-k", "x:"),
-                           ("sector-iter-k-icp100", "x-"), ("sector-iter-k-icp100-reuse5", "+-")):
+                           ("sector-iter-k-icp100", "x-"), ("sector-iter-k-icp100-reuse5", "+-"),
+                           ("pgd-sector-iter-8", "*-")):
             # each family in the order of CONFIGS (more steps), not of the noisy measured time
             f = sub[sub["config"].isin(FAMILIES[fam])]
             f = f.sort_values("config", key=lambda c: c.map(FAMILIES[fam].index))
-            ax.plot(f["attack_s"], f["err_all_m"], style, label=fam)
+            if not f.empty:  # (a folder with only some configurations: no empty legend rows)
+                ax.plot(f["attack_s"], f["err_all_m"], style, label=fam)
+        in_family = {c for members in FAMILIES.values() for c in members}
         for r in sub.itertuples():
             ax.annotate(r.config, (r.attack_s, r.err_all_m), fontsize=8, xytext=(3, 3),
                         textcoords="offset points")
@@ -185,6 +191,8 @@ def plot(res: pd.DataFrame, path: Path) -> None:
                             "generator-keep-prior", "generator-reuse5"):
                 ax.plot([r.attack_s], [r.err_all_m], "*" if r.config.startswith("generator") else "^",
                         label=r.config)
+            elif r.config not in in_family:  # any other configuration: an unlabelled dot
+                ax.plot([r.attack_s], [r.err_all_m], "k.")
         ax.set_xscale("log")
         ax.set_xlabel("attack wall time per scan [s] (one torch thread)")
         ax.set_ylabel("mean translation error [m]")
