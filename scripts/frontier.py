@@ -43,6 +43,14 @@ _REFINE: dict[str, list[str]] = {"": [], **{f"+{k}": [f"generator.refine_steps={
 _REFINE_100 = {f"{s}-icp100": [*p, "generator.refine_icp_iterations=100"]
                for s, p in _REFINE.items() if s}
 
+
+
+def _warm_start(iterations: int) -> list[str]:
+    """PGD params of a start from sector-iter-<iterations>-icp100-reuse5."""
+    return ["pgd.init=sector-iter", f"pgd.init_params={{iterations: {iterations}, "
+            "icp_iterations: 100, icp_nn_reuse: 0.05}"]
+
+
 #: name -> (attack, [attack params]); the generator's refinement uses the same surrogate as PGD.
 CONFIGS: dict[str, tuple[str, list[str]]] = {
     "normal": ("normal", []),
@@ -92,15 +100,11 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     # surrogate on the same correspondences with the implicit gradient ("-s25": through PGD's own
     # 25-iteration unrolled surrogate instead)
     **{f"pgd-{k}-sector-iter-{j}-icp100-reuse5": ("pgd", [
-        f"pgd.steps={k}", "pgd.init=sector-iter",
-        f"pgd.init_params={{iterations: {j}, icp_iterations: 100, icp_nn_reuse: 0.05}}",
-        "pgd.icp_iterations=100", "pgd.icp_nn_reuse=0.05", "pgd.backprop=implicit"])
-       for k, j in ((1, 8), (2, 8), (3, 4), (5, 4))},
+        f"pgd.steps={k}", *_warm_start(j), "pgd.icp_iterations=100", "pgd.icp_nn_reuse=0.05",
+        "pgd.backprop=implicit"]) for k, j in ((1, 8), (2, 8), (3, 4), (5, 4))},
     # the registered cheaper oracle (its defaults are pgd-2-sector-iter-8-icp100-reuse5's settings)
     "pgd-warm": ("pgd-warm", []),
-    "pgd-3-sector-iter-8-icp100-reuse5-s25": ("pgd", [
-        "pgd.steps=3", "pgd.init=sector-iter",
-        "pgd.init_params={iterations: 8, icp_iterations: 100, icp_nn_reuse: 0.05}"]),
+    "pgd-3-sector-iter-8-icp100-reuse5-s25": ("pgd", ["pgd.steps=3", *_warm_start(8)]),
 }
 
 #: the lines of the plot: configurations that differ only in their number of steps.
