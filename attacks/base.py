@@ -9,18 +9,22 @@ lambda), so both numbers are reported and never hidden.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, final
 
 import torch
 
 from icpbench.core.errors import InputError
+from icpbench.core.projection import project_to_ball
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
+
+__all__ = ["Attack", "AttackOutput", "project_to_ball", "reuse_radius", "validate_budget"]
 
 STAT_COLUMNS = ("disp_max", "disp_mean", "disp_p95", "frac_over_budget")
 
@@ -72,23 +76,6 @@ def reuse_radius(attack: str, key: str, value: float) -> float:
     if not (math.isfinite(r) and r >= 0):
         raise InputError(f"{attack} {key} must be a finite number >= 0 (metres), got {value}")
     return r
-
-
-def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,
-                    budget_m: float | torch.Tensor) -> torch.Tensor:
-    """Project each point's displacement ``adv - clean`` (B, N, 3) onto the Euclidean ball of radius
-    ``budget_m`` (metres): one float for every sample, or a (B,) tensor with one budget per sample.
-
-    Differentiable in ``adv`` (and in a tensor budget); the gradient is finite at zero displacement."""
-    d = adv - clean
-    norm = torch.linalg.vector_norm(d, dim=-1, keepdim=True)  # (B, N, 1)
-    if isinstance(budget_m, torch.Tensor):
-        if budget_m.dim() != 1 or budget_m.shape[0] != d.shape[0]:
-            raise InputError(f"per-sample budget must have shape ({d.shape[0]},), "
-                             f"got {tuple(budget_m.shape)}")
-        budget_m = budget_m.to(device=d.device, dtype=d.dtype)[:, None, None]
-    scale = torch.clamp(budget_m / torch.clamp(norm, min=1e-12), max=1.0)
-    return clean + d * scale
 
 
 def displacement_stats(clean: torch.Tensor, adv: torch.Tensor, budget_m: float,
@@ -180,6 +167,10 @@ class Attack(ABC):
     #: The attack's output depends neither on the budget nor on its random streams (the clean scan
     #: of ``none``): the runner then registers a batch once and reuses it for every budget.
     budget_invariant: ClassVar[bool] = False
+    #: A *preset* of the base attack: the defaults this subclass changes. A subclass that sets it
+    #: and defines no ``__init__`` is its base attack with these defaults (same settings, same
+    #: code); e.g. ``pgd-warm`` is ``pgd`` with the cheaper oracle's defaults.
+    preset: ClassVar[Mapping[str, Any]] = {}
 
     def __init__(self, *, strict: bool = False, **params: Any) -> None:
         self.strict = bool(strict)
@@ -190,6 +181,14 @@ class Attack(ABC):
         if "run" in cls.__dict__:
             raise TypeError(f"{cls.__name__} overrides Attack.run, which is final (it enforces the "
                             "budget, the surrogate and the displacement audit); implement _perturb")
+        if "preset" in cls.__dict__ and "__init__" not in cls.__dict__:
+            base_init, defaults = cls.__init__, dict(cls.preset)
+
+            @functools.wraps(base_init)  # the base's signature: param_types stays the base's
+            def __init__(self: Attack, **settings: Any) -> None:
+                base_init(self, **{**defaults, **settings})
+
+            cls.__init__ = __init__  # type: ignore[method-assign]
 
     @classmethod
     def param_types(cls) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """Attack ``sector``: the analytic worst case of Laconte, Lisus and Barfoot (RA-L 2024) on the whole cloud.
 
 The baseline Zhang et al. (ICRA 2025) compare with: one linearised point-to-plane step at the true
-pose with known association (:mod:`icpbench.analysis.sector_math`). Every associated scan point is moved by
+pose with known association (:mod:`icpbench.core.sector_math`). Every associated scan point is moved by
 exactly the budget lambda along the normal of its map point, with the sign that maximises the
 chosen pose component: ``p_i + lambda * sign(g_ji) R_gt^T n_i`` (sensor frame). The component is
 the worse of longitudinal ``rho_x`` and lateral ``rho_y`` (map frame, the harness's pose error).
@@ -30,8 +30,8 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from icpbench.analysis import sector_math as sector
 from icpbench.attacks.base import Attack
+from icpbench.core import sector_math as sector
 from icpbench.core.errors import InputError
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -53,7 +53,7 @@ class SectorAttack(Attack):
         axes: ``"xy"`` (worse of x and y, default), ``"x"``, ``"y"``, ``"z"`` or ``"yaw"``.
         direction: +1 or -1, the sign of the error the perturbation drives.
         frame: ``"map"`` (the harness's pose error, default) or ``"sensor"``; see
-            :mod:`icpbench.analysis.sector_math`.
+            :mod:`icpbench.core.sector_math`.
         alert_m: alert limit of ``sector_resilience_deg`` (metres).
         strict: project displacements onto the budget ball (a no-op here: they equal the budget).
     """

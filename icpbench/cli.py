@@ -245,7 +245,7 @@ def run(
         df = load_results(out_dir)
         for t in cfg.targets:
             typer.echo(f"\nTable 1 ({cfg.dataset}, target {t}):\n")
-            typer.echo(table1(df, "md", reference=reference, target=t))
+            typer.echo(table1(df, "md", reference=reference, target=t, dataset=cfg.dataset))
         if len(cfg.targets) > 1:
             for b in cfg.budgets:
                 typer.echo(f"\nTransfer table (λ={b:g}, surrogate {cfg.surrogate}):\n")
@@ -273,6 +273,7 @@ def table(
     from icpbench.harness.report import (
         check_table_destination,
         render,
+        run_dataset,
         table1,
         transfer_frame,
         transfer_vs_baseline,
@@ -294,7 +295,8 @@ def table(
                          "a larger error (non-converged runs at their final error):\n\n"
                          + render(transfer_vs_baseline(df, transfer), format) + "\n")
         else:
-            text = table1(df, format, reference=reference, target=target)
+            text = table1(df, format, reference=reference, target=target,
+                          dataset=run_dataset(results_dir))
         if out is None:
             typer.echo(text)
         else:
@@ -452,17 +454,12 @@ def train(
     icp_backprop: Annotated[str | None, typer.Option(
         help="unrolled (dICP, the paper) or implicit (implicit-function gradient of the final "
              "pose; beyond the paper).")] = None,
-    imitation: Annotated[float | None, typer.Option(
-        help="Weight of the imitation loss towards cached PGD answers (learning from the "
-             "oracle; beyond the paper). 0 = off.")] = None,
     alpha: Annotated[float | None, typer.Option(
-        help="Weight of the adversarial loss (0 with --imitation: imitation alone, no ICP "
-             "in the training step).")] = None,
-    oracle_param: Annotated[list[str] | None, typer.Option(
-        help="Cached oracle KEY=VALUE (steps, init, step_size, icp_iterations, weights, seed).")]
-    = None,
-    oracle_cache: Annotated[str | None, typer.Option(
-        help="Folder of the oracle cache (default OUT/oracle; runs may share one).")] = None,
+        help="Weight of the adversarial loss (eq. 2).")] = None,
+    sector_iter_param: Annotated[list[str] | None, typer.Option(
+        help="Settings KEY=VALUE of the iterated sector attack that makes a prior='sector-iter' "
+             "model's prior during training (iterations, step_size, icp_iterations, "
+             "icp_nn_reuse, d_max).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
@@ -478,9 +475,8 @@ def train(
         for flag, x in (("--lr", lr), ("--max-minutes", max_minutes)):
             if x is not None and not (x > 0 and math.isfinite(x)):
                 raise typer.BadParameter(f"{flag} must be a positive number, got {x}")
-        for flag, x in (("--imitation", imitation), ("--alpha", alpha)):
-            if x is not None and not (x >= 0 and math.isfinite(x)):
-                raise typer.BadParameter(f"{flag} must be a number >= 0, got {x}")
+        if alpha is not None and not (alpha >= 0 and math.isfinite(alpha)):
+            raise typer.BadParameter(f"--alpha must be a number >= 0, got {alpha}")
         out_dir = _out_dir(out)
         over = {k: v for k, v in dict(
             weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
@@ -488,10 +484,10 @@ def train(
             device=device, threads=threads, max_minutes=max_minutes,
             strict=strict or None, adv_per_budget=adv_per_budget,
             init_checkpoint=init, icp_preset=icp_preset,
-            icp_backprop=icp_backprop, dataset=dataset, imitation=imitation, alpha=alpha,
-            oracle_cache=oracle_cache).items() if v is not None}
-        if oracle_param:
-            over["oracle"] = _flat(oracle_param, "--oracle-param")
+            icp_backprop=icp_backprop, dataset=dataset, alpha=alpha).items() if v is not None}
+        if sector_iter_param:
+            preset_si = train_config(preset).sector_iter
+            over["sector_iter"] = {**preset_si, **_flat(sector_iter_param, "--sector-iter-param")}
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets:

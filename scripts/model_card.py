@@ -3,7 +3,7 @@ Table 1 that ``scripts/main_job.sh`` produced (``results/table1.csv``).
 
 Usage: ``python scripts/model_card.py [--dataset lidar-sim] [--table results/table1.csv]``.
 Another checkpoint folder names its own Table 1 and training script (``--table-title``,
-``--table-source``, ``--script``; see scripts/train_lidar_varied.sh).
+``--table-source``, ``--script``).
 Nothing here is typed by hand: training settings, wall times and held-out numbers come from the
 cards that ``icpbench train`` wrote, the Table 1 cells from the CSV.
 """

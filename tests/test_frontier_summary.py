@@ -45,13 +45,22 @@ def test_summary_of_nothing_is_empty(tmp_path: Path, frontier) -> None:
     assert frontier.summarise(tmp_path, list(frontier.CONFIGS)).empty
 
 
-def test_refinement_families_differ_only_in_steps_and_surrogate_cap(frontier) -> None:
-    """``generator+K`` ascends the 25-iteration surrogate, ``generator+K-icp100`` the 100-iteration
-    evaluation ICP; both start from the default generator and name K steps."""
-    for k in (1, 3, 10):
-        attack, short = frontier.CONFIGS[f"generator+{k}"]
-        attack100, full = frontier.CONFIGS[f"generator+{k}-icp100"]
-        assert attack == attack100 == "generator"
-        assert short == [f"generator.refine_steps={k}"]
-        assert full == [*short, "generator.refine_icp_iterations=100"]
-    assert frontier.FAMILIES["generator-refine100"][0] == "generator"
+def test_configurations_are_data_and_reach_the_cli(frontier, tmp_path: Path) -> None:
+    """The configurations come from the YAML file; every one names a registered attack and
+    settings it accepts; nested settings reach the CLI in the flow style it reads; a bad entry is
+    refused."""
+    import yaml
+
+    from icpbench.core import registry
+
+    assert "pgd-30" in frontier.CONFIGS and frontier.CONFIGS["pgd-30"]["params"] == {"steps": 30}
+    for name, c in frontier.CONFIGS.items():
+        registry.attacks.check_params(c["attack"], c["params"])
+        for arg in frontier.attack_args(c):
+            key, value = arg.split("=", 1)
+            assert key.split(".", 1)[0] == c["attack"], name
+            assert yaml.safe_load(value) == c["params"][key.split(".", 1)[1]], name
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("x: {params: {steps: 2}}\n")
+    with pytest.raises(ValueError, match="needs 'attack'"):
+        frontier.load_configs(bad)

@@ -10,7 +10,13 @@ import torch
 import torch.nn.functional as F
 
 from icpbench.core.errors import CheckpointError, InputError
-from icpbench.learning.checkpoint import load_checkpoint, read_checkpoint_meta, save_checkpoint
+from icpbench.learning.checkpoint import (
+    CONFIG_HASH_KEY,
+    config_hash,
+    load_checkpoint,
+    read_checkpoint_meta,
+    save_checkpoint,
+)
 from icpbench.learning.geometry import (
     Geometry,
     GeometryConfig,
@@ -19,12 +25,7 @@ from icpbench.learning.geometry import (
     farthest_point_indices,
     fps_start_index,
 )
-from icpbench.learning.network import (
-    Generator,
-    GeneratorConfig,
-    add_global_feature,
-    generator_config,
-)
+from icpbench.learning.network import Generator, GeneratorConfig, generator_config
 
 torch.set_num_threads(1)
 
@@ -222,38 +223,6 @@ def test_permuting_the_points_permutes_the_output():
         torch.testing.assert_close(a[..., order], b[..., order_p], rtol=1e-5, atol=1e-5)
 
 
-def test_global_feature_is_one_vector_per_scan_and_starts_as_a_no_op():
-    """global_feature: the scan's max-pooled F4 descriptor shifts every point's first head layer
-    alike; added to a trained model (zero map) it changes nothing, and it stays permutation
-    consistent and batch independent."""
-    G = randomised(generator_config("objects", conditioned=True), seed=2)
-    x = torch.as_tensor(np.stack([cloud(30), cloud(31)]))
-    geo, lam = G.precompute(x), torch.tensor([0.05, 0.1])
-    W = add_global_feature(G)
-    assert W.config.global_feature and W.glob is not None and not G.config.global_feature
-    assert W.glob.in_features == 512 and W.glob.out_features == 256
-    with torch.no_grad():
-        torch.testing.assert_close(W(x, geo, lam), G(x, geo, lam), rtol=0, atol=0)
-        torch.nn.init.normal_(W.glob.weight, std=0.5)
-        y = W(x, geo, lam)
-        # = the model without the feature whose first head bias is shifted by glob(max_j F4[:, j])
-        for i in range(2):
-            g = W.glob(W.encode(x[i:i + 1], geo.select([i]))[3].max(-1).values)[0]
-            S = randomised(generator_config("objects", conditioned=True), seed=2)
-            S.head[0].bias += g
-            torch.testing.assert_close(S(x[i:i + 1], geo.select([i]), lam[i:i + 1]), y[i:i + 1],
-                                       rtol=1e-5, atol=1e-6)
-    assert (y - G(x, geo, lam)).abs().max() > 1e-4  # the descriptor now matters
-    perm = torch.as_tensor(np.random.default_rng(4).permutation(N))
-    with torch.no_grad():
-        yp = W(x[:1, perm], W.precompute(x[:1, perm]), lam[:1])
-        one = W(x[1:], geo.select([1]), lam[1:])
-    torch.testing.assert_close(yp, y[:1, perm], rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(one, y[1:], rtol=1e-5, atol=1e-6)
-    with pytest.raises(InputError, match="already has the global feature"):
-        add_global_feature(W)
-
-
 def test_samples_are_independent_of_the_batch():
     G = randomised(generator_config("objects"))
     x = torch.as_tensor(np.stack([cloud(10), cloud(11), cloud(12)]))
@@ -266,7 +235,9 @@ def test_samples_are_independent_of_the_batch():
         one = G(x[1:2], geo.select([1]))
     torch.testing.assert_close(full[1:2], one, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(full, chunked, rtol=1e-5, atol=1e-6)
-    assert G._chunk(x) == 2 and Generator(generator_config("objects", norm="batch"))._chunk(x) == 3
+    assert G._chunk(x) == 2
+    G.chunk_size = None  # the CPU default: one sample at a time
+    assert G._chunk(x) == 1
 
 
 def test_residual_starts_at_identity_and_scales_are_applied():
@@ -324,13 +295,17 @@ def test_bounded_output_respects_the_budget_and_scales_with_it():
         assert torch.equal(G0(x, geo, lam), x)
 
 
-@pytest.mark.parametrize("norm", ["none", "batch"])
-def test_other_norms_run(norm):
-    G = randomised(generator_config("objects", norm=norm))
+def test_backward_is_finite_through_every_layer():
+    """GroupNorm (the one normalisation) with in-place ReLUs: autograd gives finite gradients to
+    every parameter."""
+    G = randomised(generator_config("objects"))
     x = torch.as_tensor(np.stack([cloud(15), cloud(16)]))
     y = G(x, G.precompute(x))
     assert y.shape == x.shape and torch.isfinite(y).all()
-    y.square().sum().backward()  # in-place ReLUs are autograd-safe with every norm
+    norms = [m for m in G.modules() if "norm" in type(m).__name__.lower()]
+    assert len(norms) == 15 and all(isinstance(m, torch.nn.GroupNorm) and m.num_groups == 8
+                                    for m in norms)  # 4 SA levels x 3 + 3 FP levels
+    y.square().sum().backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in G.parameters())
 
 
@@ -340,14 +315,24 @@ def test_config_json_round_trip_and_validation():
     assert cfg.geometry.level_sizes(10_000) == (10_000, 3333, 833, 208)
     with pytest.raises(InputError, match="lacks key"):
         GeneratorConfig.from_dict({"a": 2})
-    old = {k: v for k, v in cfg.to_dict().items() if k != "global_feature"}  # pre-flag JSONs
-    assert GeneratorConfig.from_dict(old) == cfg and not cfg.global_feature
-    wide = cfg.with_(global_feature=True)
-    assert GeneratorConfig.from_dict(json.loads(wide.to_json())) == wide
+    # JSONs written before the prior existed: no prior, as then
+    pre_prior = {k: v for k, v in cfg.to_dict().items() if not k.startswith("prior")}
+    assert GeneratorConfig.from_dict(pre_prior) == cfg and cfg.prior == "none"
+    # JSONs written while the removed options existed load when they hold the behaviour that
+    # remains (no global feature, GroupNorm, exact FPS); the prior's old run-time settings are
+    # ignored (the generator attack's sector_iter settings replace them)
+    old = {**cfg.to_dict(), "global_feature": False, "norm": "group", "fps": "exact",
+           "prior_iterations": 8, "prior_step": 0.5, "prior_icp_iterations": 25,
+           "prior_icp_stride": 1, "prior_icp_nn_reuse": 0.05}
+    assert GeneratorConfig.from_dict(old) == cfg
+    for key, value in (("norm", "batch"), ("norm", "none"), ("global_feature", True),
+                       ("fps", "bucket")):
+        with pytest.raises(InputError, match=f"{key}={value!r} is no longer supported"):
+            GeneratorConfig.from_dict({**old, key: value})
     with pytest.raises(InputError, match="unknown key"):
         GeneratorConfig.from_dict({**cfg.to_dict(), "depth": 5})
-    with pytest.raises(InputError, match="norm must be one of"):
-        generator_config("objects", norm="layer")
+    with pytest.raises(InputError, match="output must be one of"):
+        generator_config("objects", output="sphere")
     with pytest.raises(InputError, match="conditioned must be true or false"):
         generator_config("objects", conditioned=1)
     with pytest.raises(InputError, match="scale_m must be a finite number > 0"):
@@ -435,8 +420,21 @@ def test_checkpoint_errors(tmp_path):
         load_checkpoint(variant("badjson", js="{not json"))
     with pytest.raises(CheckpointError, match="invalid generator config.*lacks key"):
         load_checkpoint(variant("cfgkey", js={**meta, "config": {"a": 2}}))
-    with pytest.raises(CheckpointError, match="invalid generator config.*norm must be one of"):
-        load_checkpoint(variant("cfgval", js={**meta, "config": {**meta["config"], "norm": "layer"}}))
+    with pytest.raises(CheckpointError, match="invalid generator config.*output must be one of"):
+        load_checkpoint(variant("cfgval", js={**meta, "config": {**meta["config"], "output": "sphere"}}))
+    with pytest.raises(CheckpointError, match="invalid generator config.*norm='batch' is no longer"):
+        load_checkpoint(variant("cfgnorm", js={**meta, "config": {**meta["config"], "norm": "batch"}}))
+    # a checkpoint saved while the removed options existed (its weights carry the hash of its own
+    # JSON), holding the remaining behaviour, loads as today's config
+    old_cfg = {**meta["config"], "global_feature": False, "norm": "group", "fps": "exact",
+               "prior_icp_iterations": 25}
+    old_pt = tmp_path / "old-weights.pt"
+    torch.save({**G.state_dict(), CONFIG_HASH_KEY: config_hash(old_cfg)}, old_pt)
+    loaded = load_checkpoint(variant("oldjson", weights=old_pt.read_bytes(),
+                                     js={**meta, "config": old_cfg}))
+    assert loaded.config == G.config
+    for (k, a), b in zip(loaded.model.state_dict().items(), G.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
     with pytest.raises(CheckpointError, match="not an icpbench generator config"):
         load_checkpoint(variant("fmt", js={**meta, "format": "other"}))
     with pytest.raises(CheckpointError, match="truncated or corrupt"):
@@ -450,7 +448,8 @@ def test_checkpoint_errors(tmp_path):
     shape_msg = r"'head\.0\.weight' has shape \(256, 260, 1\).*needs \(256, 259, 1\)"
     with pytest.raises(CheckpointError, match=shape_msg):
         load_checkpoint(variant("shape", weights=other.read_bytes()))
-    save_checkpoint(Generator(generator_config("objects", norm="none")), other)
+    # weights without the 30 GroupNorm parameters (4 SA levels x 3 + 3 FP levels, weight and bias)
+    torch.save({k: v for k, v in G.state_dict().items() if "norms" not in k}, other)
     with pytest.raises(CheckpointError, match=r"lacks 30 parameter\(s\).*first 'sa\.0\.norms\.0\.weight'"):
         load_checkpoint(variant("missing", weights=other.read_bytes()))
     extra = tmp_path / "extra.pt"

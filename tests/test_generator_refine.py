@@ -53,3 +53,21 @@ def test_refinement_settings_are_checked(batch):
         GeneratorAttack(dataset="objects", refine_steps=-1)
     with pytest.raises(InputError, match="differentiable surrogate"):
         GeneratorAttack(dataset="objects", refine_steps=1).run(batch, LAM, surrogate=None)
+
+
+def test_refine_is_a_preset_that_starts_from_the_generator_rows_output(batch):
+    """``generator-refine`` has the generator's settings with its own defaults, and in one batch it
+    starts from the ``generator`` row's output (no second network pass: the row reports the reused
+    seconds) and ends no lower than it on the surrogate it refines through."""
+    assert GeneratorRefineAttack.param_types() == GeneratorAttack.param_types()
+    preset = GeneratorRefineAttack(dataset="objects")
+    assert (preset.refine_steps, preset.refine_icp_iterations, preset.refine_backprop) == \
+        (3, 100, "implicit")
+    icp = PointToPlaneICP("objects")
+    b = Batch.from_samples(batch.samples)
+    plain = GeneratorAttack(dataset="objects", strict=True).run(b, LAM, surrogate=icp)
+    assert float(plain.extra["reused_s"].max()) == 0.0
+    ref = GeneratorRefineAttack(dataset="objects", strict=True, refine_steps=2,
+                                refine_icp_iterations=150).run(b, LAM, surrogate=icp)
+    assert float(ref.extra["reused_s"].min()) > 0.0
+    assert (_objective(icp, b, ref.scans) >= _objective(icp, b, plain.scans) - 1e-9).all()

@@ -131,10 +131,10 @@ def test_plugin_settings_are_checked_for_every_plugin(cfg, needle):
 def test_setting_values_are_coerced_to_the_declared_types():
     cfg = RunConfig(dataset="synthetic", attacks=["pgd"], targets=["p2plane"], budgets=[1.0],
                     attack_params={"pgd": {"step_size": "1e-3", "steps": 2.0,
-                                           "random_start": "false"}},
+                                           "icp_nn_reuse": "0"}},
                     target_params={"p2plane": {"d_max": None, "tol": "1e-5"}},
                     dataset_params={"n_samples": 2}).validate()
-    assert cfg.attack_params["pgd"] == {"step_size": 1e-3, "steps": 2, "random_start": False}
+    assert cfg.attack_params["pgd"] == {"step_size": 1e-3, "steps": 2, "icp_nn_reuse": 0.0}
     assert cfg.target_params["p2plane"] == {"d_max": None, "tol": 1e-5}
 
 

@@ -146,7 +146,7 @@ def attacks(tmp_path_factory):
         for prm in G.parameters():
             prm.copy_(torch.randn(prm.shape, generator=gen) * 0.3)
     ckpt = save_checkpoint(G, tmp_path_factory.mktemp("gen") / "random.pt")
-    params = {"pgd": {"steps": 2, "restarts": 1}, "sector": {"icp_preset": "objects"},
+    params = {"pgd": {"steps": 2}, "sector": {"icp_preset": "objects"},
               "generator": {"checkpoint": str(ckpt)},
               "generator-refine": {"checkpoint": str(ckpt), "refine_steps": 1,
                                    "refine_icp_iterations": 3}}

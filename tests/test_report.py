@@ -1,4 +1,8 @@
-"""Table 1 arithmetic on hand-made results: mean ± std, '% Ours is Larger', ties, drops, pairing."""
+"""Table 1 arithmetic on hand-made results: mean ± std, '% Ours is Larger', ties, drops, pairing,
+the all-runs fallback and its mark, the counts table, the CSV columns and the unit per dataset."""
+
+import io
+import json
 
 import numpy as np
 import pandas as pd
@@ -6,12 +10,22 @@ import pytest
 
 from icpbench.core.errors import InputError
 from icpbench.harness.report import (
+    ALL_RUNS_MARK,
+    EMPTY,
+    Cell,
+    all_pairs_frame,
+    counts_frame,
+    displacement_frame,
+    error_figure,
+    error_unit,
     health_warnings,
     pct_reference_larger,
     render,
+    run_dataset,
     table1,
     table1_cells,
     table1_frame,
+    table1_long,
     transfer_frame,
 )
 
@@ -54,17 +68,22 @@ def test_pct_reference_larger_with_non_converged_runs(df):
     assert pct == pytest.approx(100 * 2 / 6)
     text = table1(df, "md")
     assert "% Ours is larger incl. non-converged runs" in text
-    assert "Normal λ=1: 33.3% of 6" in text
+    shares = all_pairs_frame(df).set_index("Method")
+    assert list(shares.index) == ["Original", "Normal"]  # the reference has no row
+    assert shares.loc["Normal", "λ=1"] == "33.3% of 6"
+    assert "| Normal   | 33.3% of 6" in text
 
 
 def test_displacement_audit_footer(df):
     d = df.assign(disp_max=np.where(df["attack"] == "generator", 1.4, 1.0),
                   frac_over_budget=np.where(df["attack"] == "generator", 0.25, 0.0))
     d.loc[d["attack"] == "none", ["disp_max", "frac_over_budget"]] = 0.0
+    audit = displacement_frame(d)
+    assert list(audit["Method"]) == ["Normal", "Ours"]  # the clean rows moved nothing
+    assert list(audit["λ=1"]) == ["1 / 0.00%", "1.4 / 25.00%"]
     text = table1(d, "md")
-    lines = [ln for ln in text.splitlines() if ln.startswith("displacement audit")]
-    assert len(lines) == 2  # generator and normal; the clean rows moved nothing
-    assert any("max 1.4, 25.00% of points over λ" in ln for ln in lines)
+    assert "Displacement audit: largest point displacement [m] / mean share" in text
+    assert "| Ours     | 1.4 / 25.00% |" in text
 
 
 def test_mean_std_over_converged_only(df):
@@ -97,9 +116,10 @@ def test_formats_parse_back(df):
     back = pd.read_csv(pd.io.common.StringIO(csv_text))
     assert list(back["Method"]) == ["Original", "Normal", "Ours"]
     md = table1(df, "md")
-    assert "| Method" in md and "n converged / dropped / pairs" in md
+    assert "| Method" in md and "Runs per cell: runs / converged / pairs" in md
     tex = table1(df, "latex")
-    assert "\\toprule" in tex and "% n converged" in tex
+    assert tex.startswith("\\begin{tabular}") and tex.count("\\begin{tabular}") == 3  # main, counts, shares
+    assert "Runs per cell: runs / converged / pairs" in tex and "% warning: normal" in tex
     with pytest.raises(InputError):
         render(table1_frame(df), "html")
 
@@ -137,3 +157,136 @@ def test_transfer_vs_baseline_difference_and_share():
     assert frame.loc[0, "kiss-icp"] == "-0.10 m, 0% of 3"
     with pytest.raises(InputError, match="baseline"):
         transfer_vs_baseline(pd.DataFrame(rows), baseline="uniform")
+
+
+# -- the all-runs fallback, the counts table, the CSV columns and the unit ------------------------
+@pytest.fixture
+def sparse():
+    """Cells the converged-runs rule cannot fill: few converged runs, no converged pair, a failed
+    run, an attack run at one budget only."""
+    r = []
+    for i, e in enumerate([4.0, 5.0, 6.0, 7.0]):
+        r += [_row(f"s{i}", "generator", e), _row(f"s{i}", "none", 0.1 * (i + 1))]
+    r += [_row("s0", "uniform", 1.0)] + [_row(f"s{i}", "uniform", e, conv=False)
+                                         for i, e in ((1, 2.0), (2, 3.0), (3, 8.0))]
+    r += [_row(f"s{i}", "normal", e, conv=False) for i, e in enumerate([1.5, 9.0, 2.5])]
+    r += [_row("s0", "pgd", 3.0), _row("s1", "pgd", 4.5)]
+    r += [_row("s0", "generator", 10.0, budget=2.0), _row("s0", "none", 0.1, budget=2.0),
+          _row("s1", "none", 0.3, budget=2.0), _row("s0", "uniform", 2.0, conv=False, budget=2.0),
+          {**_row("s0", "normal", np.nan, conv=False, budget=2.0), "status": "failed"}]
+    return pd.DataFrame(r)
+
+
+def _marked(frame: pd.DataFrame) -> set[tuple[str, str]]:
+    return {(m, col) for m, row in frame.set_index("Method").iterrows()
+            for col, v in row.items() if v.endswith(ALL_RUNS_MARK)}
+
+
+def test_fallback_figures_are_used_and_marked_exactly_where_the_rule_leaves_nothing(sparse):
+    f = table1_frame(sparse).set_index("Method")
+    assert list(f.index) == ["Original", "Uniform", "Normal", "PGD (oracle)", "Ours"]
+    e1, p1 = "λ=1 Trans Pose Error [m]", "λ=1 % Ours is Larger"
+    e2, p2 = "λ=2 Trans Pose Error [m]", "λ=2 % Ours is Larger"
+    # the paper's rule where it has enough
+    assert f.loc["Original", e1] == "0.25 ± 0.11" and f.loc["Original", p1] == "100.00%"
+    assert f.loc["Ours", e1] == "5.50 ± 1.12" and f.loc["PGD (oracle)", p1] == "100.00%"
+    # one converged uniform run of four: mean ± std over all four, marked; its one converged pair
+    u = np.array([1.0, 2.0, 3.0, 8.0])
+    assert f.loc["Uniform", e1] == f"{u.mean():.2f} ± {u.std():.2f} {ALL_RUNS_MARK}" == "3.50 ± 2.69 †"
+    assert f.loc["Uniform", p1] == "100.00%"
+    # normal never converged: all three runs, and all three pairs (4 > 1.5, 5 < 9, 6 > 2.5)
+    n = np.array([1.5, 9.0, 2.5])
+    assert f.loc["Normal", e1] == f"{n.mean():.2f} ± {n.std():.2f} †"
+    assert f.loc["Normal", p1] == "66.67% †"
+    # a single run: its value without a ±, marked only when it did not converge
+    assert f.loc["Ours", e2] == "10.00"
+    assert f.loc["Uniform", e2] == "2.00 †" and f.loc["Uniform", p2] == "100.00% †"
+    # nothing finite (failed run, attack not run at λ=2)
+    assert [f.loc[m, c] for m in ("Normal", "PGD (oracle)") for c in (e2, p2)] == [EMPTY] * 4
+    assert _marked(f.reset_index()) == {("Uniform", e1), ("Normal", e1), ("Normal", p1),
+                                        ("Uniform", e2), ("Uniform", p2)}
+
+
+def test_marks_are_explained_once_and_absent_when_unused(sparse, df):
+    text = table1(sparse, "md")
+    foot = [ln for ln in text.splitlines() if ln.startswith(ALL_RUNS_MARK)]
+    assert len(foot) == 1 and "over all runs" in foot[0]
+    assert sum(ln.startswith(EMPTY) for ln in text.splitlines()) == 1
+    assert not _marked(table1_frame(df))
+    plain = table1(df, "md")
+    assert ALL_RUNS_MARK not in plain and EMPTY not in plain
+    tex = table1(sparse, "latex")
+    assert "\n† over all runs" in tex and "no pair for the \\%" in tex
+
+
+@pytest.mark.parametrize("fmt", ["md", "latex", "csv"])
+def test_no_placeholder_or_zero_spread_cells(sparse, fmt):
+    text = table1(sparse, fmt)
+    for bad in ("n/a", "no pairs", "± 0.00", "nan ± nan"):
+        assert bad not in text, bad
+    one = Cell(mean=1.0, std=0.0, n=1, dropped=0, pct_ref_larger=None, n_pairs=0, runs=1,
+               mean_all=1.0, std_all=0.0, n_finite=1)
+    fig = error_figure(one)
+    assert (fig.value, fig.std, fig.basis) == (1.0, None, "converged")
+
+
+def test_counts_table_has_the_counts(sparse, df):
+    c = counts_frame(sparse).set_index("Method")
+    assert list(c.columns) == ["λ=1", "λ=2"]
+    assert list(c["λ=1"]) == ["4 / 4 / 4", "4 / 1 / 1", "3 / 0 / 0", "2 / 2 / 2", "4 / 4 / -"]
+    assert list(c["λ=2"]) == ["2 / 2 / 1", "1 / 0 / 0", "1 / 0 / 0", "0 / 0 / 0", "1 / 1 / -"]
+    c = counts_frame(df).set_index("Method")["λ=1"]
+    assert c.to_dict() == {"Original": "2 / 2 / 2", "Normal": "7 / 6 / 4", "Ours": "6 / 5 / -"}
+    text = table1(df, "md")
+    assert "Runs per cell: runs / converged / pairs" in text
+    assert "| Normal   | 7 / 6 / 4 |" in text
+    assert "converged / dropped" not in text  # no line of counts as text any more
+
+
+def test_csv_parses_and_orders(sparse):
+    back = pd.read_csv(io.StringIO(table1(sparse, "csv")))
+    assert list(back["Method"]) == ["Original", "Uniform", "Normal", "PGD (oracle)", "Ours"]
+    assert list(back["attack"]) == ["none", "uniform", "normal", "pgd", "generator"]
+    assert back.loc[1, "λ=1 Trans Pose Error [m]"] == "3.50 ± 2.69 †"  # the shown text too
+    assert list(back["λ=1 error_basis"]) == ["converged", "all", "all", "converged", "converged"]
+    assert list(back["λ=1 converged"]) == [4, 1, 0, 2, 4]
+    assert list(back["λ=1 runs"]) == [4, 4, 3, 2, 4]
+    assert back["λ=1 mean"].to_numpy() == pytest.approx([0.25, 3.5, 13 / 3, 3.75, 5.5])
+    by_error = back.sort_values("λ=1 mean", ascending=False)["attack"].tolist()
+    assert by_error == ["generator", "normal", "pgd", "uniform", "none"]
+    assert back["λ=1 pct_ours_larger"].iloc[:4].tolist() == pytest.approx([100, 100, 200 / 3, 100])
+    assert back["λ=1 pct_basis"].tolist()[:4] == ["converged", "converged", "all", "converged"]
+    assert pd.isna(back.loc[4, "λ=1 pct_ours_larger"])  # the reference's own row
+    assert pd.isna(back.loc[4, "λ=2 std"]) and back.loc[4, "λ=2 mean"] == 10.0  # one run
+    assert pd.isna(back.loc[2, "λ=2 mean"]) and pd.isna(back.loc[3, "λ=2 runs"])
+    long = table1_long(sparse)
+    assert len(long) == 9 and list(long.columns[:6]) == ["Method", "attack", "target", "budget",
+                                                          "metric", "unit"]
+    assert long.groupby("attack")["budget"].apply(list).to_dict()["none"] == [1.0, 2.0]
+
+
+def _write_run(folder, frame, dataset):
+    folder.mkdir()
+    frame.assign(strict=False, meta="{}", extra="{}").to_csv(folder / "results.csv", index=False)
+    if dataset is not None:
+        (folder / "manifest.json").write_text(json.dumps({"config": {"dataset": dataset}}))
+
+
+@pytest.mark.parametrize("dataset, unit", [("objects", "units"), ("meshes", "units"),
+                                           ("lidar-sim", "m"), (None, "m")])
+def test_unit_header_follows_the_runs_dataset(df, tmp_path, dataset, unit):
+    from typer.testing import CliRunner
+
+    from icpbench.cli import app
+
+    assert error_unit("trans_err_xy", dataset) == unit and error_unit("rot_err", dataset) == "rad"
+    _write_run(tmp_path / "run", df, dataset)
+    assert run_dataset(tmp_path / "run") == dataset == run_dataset(tmp_path / "run" / "results.csv")
+    cols = table1_frame(df, dataset=dataset).columns
+    assert f"λ=1 Trans Pose Error [{unit}]" in cols
+    for fmt, head in (("md", "| Method"), ("csv", "Method,")):
+        res = CliRunner().invoke(app, ["table", str(tmp_path / "run"), "--format", fmt])
+        assert res.exit_code == 0, res.output
+        assert res.output.startswith(head) and f"Trans Pose Error [{unit}]" in res.output
+        other = "[m]" if unit == "units" else "[units]"
+        assert other not in res.output

@@ -1,4 +1,4 @@
-"""Tests of the analytic sector baseline (icpbench.analysis.sector_math) and the ``sector`` attack plugin.
+"""Tests of the analytic sector baseline (icpbench.core.sector_math) and the ``sector`` attack plugin.
 
 Must-show of issue 6: (a) closed form == brute force over all sign patterns, (b) sliding-window
 sweep == brute-force grid of start angles, (c) the explicit perturbation pushed through one step of
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.analysis import sector_math as sector
+from icpbench.core import sector_math as sector
 from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.se3 import pose_error

@@ -239,7 +239,7 @@ def test_each_sensor_gives_n_points_on_the_same_pose(cache):
 
 # -- mixes ------------------------------------------------------------------------------------
 def test_lists_of_towns_and_sensors_make_a_mix(cache):
-    mix = LidarSimDataset(cache_dir=cache, town_seed=[4, 5], sensor=["sim32", "vlp16"],
+    mix = LidarSimDataset.create(cache_dir=cache, town_seed=[4, 5], sensor=["sim32", "vlp16"],
                           split="train", **SMALL)
     assert isinstance(mix, LidarSimMix) and len(mix.parts) == 4
     assert len({p.cache_root for p in mix.parts}) == 4  # each (town, sensor) cached once
@@ -250,10 +250,10 @@ def test_lists_of_towns_and_sensors_make_a_mix(cache):
     got = [mix[i] for i in range(3)]
     assert all(g.id.startswith("lidar-sim/town") for g in got)
     assert [mix.sample_id(i) for i in range(3)] == [g.id for g in got]  # without loading
-    single = LidarSimDataset(cache_dir=cache, town_seed=[4], **SMALL)
+    single = LidarSimDataset.create(cache_dir=cache, town_seed=[4], **SMALL)
     assert isinstance(single, LidarSimDataset) and single.town_seed == 4
     with pytest.raises(InputError, match="duplicates"):
-        LidarSimDataset(cache_dir=cache, town_seed=[4, 4], **SMALL)
+        LidarSimDataset.create(cache_dir=cache, town_seed=[4, 4], **SMALL)
     with pytest.raises(InputError, match="town_seed"):
         LidarSimDataset(cache_dir=cache, town_seed="x", **SMALL)
 

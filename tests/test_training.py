@@ -119,18 +119,70 @@ def test_fine_tuning_starts_from_the_given_weights(trained, tmp_path):
         assert torch.equal(a, b), k  # lr 0: the weights are exactly the initial checkpoint's
 
 
-def test_fine_tuning_can_add_the_global_feature(trained, tmp_path):
-    """generator_overrides global_feature=True with init_checkpoint: the fine-tuned model has the
-    scan descriptor, every old weight is carried over, and training moves the new map."""
+def test_fine_tuning_can_add_the_prior(tmp_path):
+    """generator_overrides prior="sector" with init_checkpoint of a bounded model without a prior:
+    the fine-tuned model takes the prior channels (gain and gate from the overrides), every old
+    weight is carried over into the widened layers, and training moves the new input weights."""
     from icpbench.learning.checkpoint import load_checkpoint
+    from icpbench.learning.prior import PRIOR_CHANNELS
 
-    _, out, _ = trained
-    ft = train_config("quick-objects", train_samples=2, eval_samples=2, batch_size=2,
-                      pretrain_epochs=0, epochs=1, lr=1e-3, init_checkpoint=str(out / "generator.pt"),
-                      generator_overrides={"global_feature": True}, dataset_params={"n_samples": 2})
-    train(ft, tmp_path, progress=False)
-    before, after = load_checkpoint(out / "generator.pt"), load_checkpoint(tmp_path / "generator.pt")
-    assert after.config == before.config.with_(global_feature=True)
-    assert set(after.model.state_dict()) - set(before.model.state_dict()) == {"glob.weight",
-                                                                              "glob.bias"}
-    assert after.model.glob.weight.abs().max() > 0  # started at zero, received gradients
+    small = {"train_samples": 2, "eval_samples": 1, "batch_size": 2, "pretrain_epochs": 0,
+             "epochs": 1, "dataset_params": {"n_samples": 2}}
+    base = train_config("quick-objects", generator_overrides={"output": "bounded"}, **small)
+    train(base, tmp_path / "base", progress=False)
+    ft = train_config("quick-objects", lr=1e-3, init_checkpoint=str(tmp_path / "base" / "generator.pt"),
+                      generator_overrides={"output": "bounded", "prior": "sector", "prior_gain": 1.5,
+                                           "prior_dmax": 0.3},
+                      **small)
+    card = train(ft, tmp_path / "ft", progress=False)
+    assert card["heldout_eval"]["0.05"]["disp_max_mean"] < 0.05
+    before = load_checkpoint(tmp_path / "base" / "generator.pt")
+    after = load_checkpoint(tmp_path / "ft" / "generator.pt")
+    assert after.config == before.config.with_(prior="sector", prior_gain=1.5, prior_dmax=0.3)
+    assert set(after.model.state_dict()) - set(before.model.state_dict()) == {"prior_gain"}
+    n_old = before.model.head[0].in_channels  # head input: [features (259), prior (8), budget]
+    assert after.model.head[0].in_channels == n_old + PRIOR_CHANNELS
+    assert after.model.sa[0].first.in_channels == 3 + PRIOR_CHANNELS
+    # the prior's input weights started at zero and received gradients
+    assert after.model.sa[0].first.weight[:, 3:].abs().max() > 0
+    assert after.model.head[0].weight[:, 259:259 + PRIOR_CHANNELS].abs().max() > 0
+
+
+def test_iterated_prior_training_uses_and_records_its_settings(tmp_path, monkeypatch):
+    """prior="sector-iter": the training prior comes from the iterated attack with the config's
+    ``sector_iter`` settings (missing ones at their defaults), which the card records in full;
+    the quick-lidar preset trains through the 25-iteration surrogate on exact correspondences,
+    and an unknown setting is refused."""
+    import icpbench.learning.training as training
+    from icpbench.core.errors import InputError
+    from icpbench.core.iterated_sector import SectorIterSettings
+
+    seen = []
+
+    def recording(config, batch, budget_m, icp=None, settings=None):
+        seen.append((len(batch), settings))
+        return prior_channels(config, batch, budget_m, icp, settings)
+
+    prior_channels = training.prior_channels
+    monkeypatch.setattr(training, "prior_channels", recording)
+    assert train_config("quick-lidar").sector_iter == {"icp_iterations": 25, "icp_nn_reuse": 0.0}
+    assert train_config("quick-objects").sector_iter == {}
+    settings = {"iterations": 1, "icp_iterations": 5, "icp_nn_reuse": 0.0}
+    cfg = train_config("quick-objects", train_samples=2, eval_samples=1, batch_size=2,
+                       pretrain_epochs=0, epochs=1, sector_iter=settings,
+                       generator_overrides={"output": "ball", "prior": "sector-iter",
+                                            "prior_gain": 1.0, "prior_dmax": 0.3},
+                       dataset_params={"n_samples": 2})
+    card = train(cfg, tmp_path / "iter", progress=False)
+    assert card["sector_iter"] == SectorIterSettings(**settings).as_dict()
+    assert card["sector_iter"]["step_size"] == 0.5  # a missing setting keeps its default
+    # the 2 training scans (one prior each: one budget) and the held-out one, all with these settings
+    assert [n for n, _ in seen] == [1, 1, 1]
+    assert all(s == SectorIterSettings(**settings) for _, s in seen)
+    ev = card["heldout_eval"]["0.05"]
+    assert 0 < ev["disp_max_mean"] <= 0.05 + 1e-6
+    bad = train_config("quick-objects", train_samples=2, eval_samples=1, batch_size=2,
+                       pretrain_epochs=0, epochs=1, sector_iter={"icp_stride": 2},
+                       generator_overrides=cfg.generator_overrides, dataset_params={"n_samples": 2})
+    with pytest.raises(InputError, match="unknown setting.*'icp_stride'"):
+        train(bad, tmp_path / "bad", progress=False)

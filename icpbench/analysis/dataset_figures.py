@@ -43,7 +43,7 @@ def _resolve(dataset: str | Dataset, kwargs: dict[str, Any]) -> Dataset:
     if isinstance(dataset, str):
         from icpbench.core.registry import datasets
 
-        return datasets.get(dataset)(**kwargs)
+        return datasets.get(dataset).create(**kwargs)
     raise InputError(f"expected a dataset name or a Dataset, got {type(dataset).__name__}")
 
 

@@ -66,7 +66,7 @@ def study(models: dict[str, str], budget: float, n_objects: int = 24, n_figure: 
         displacement, adversarial clouds of the first ``n_figure`` objects per attack
         (n_figure, N, 3) in the map frame plus the clean ones under ``"_clean"``, the samples).
     """
-    ds = registry.datasets.get("objects")(seed=seed, split="test", n_samples=n_objects)
+    ds = registry.datasets.get("objects").create(seed=seed, split="test", n_samples=n_objects)
     samples = ds.take(n_objects)
     batch = Batch.from_samples(samples)
     target = PointToPlaneICP("objects")

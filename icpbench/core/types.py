@@ -113,6 +113,9 @@ class Batch:
         scans: (B, N, 3) tensor of the (clean) scans in the sensor frame.
         T_gt: (B, 4, 4) float64 tensor.
         T_init: (B, 4, 4) float64 tensor.
+        memo: results of deterministic computations on this batch that several attacks share
+            (e.g. the iterated sector attack, which is also the generator's prior), keyed by the
+            computation and its settings; see :func:`icpbench.core.iterated_sector.iterated_sector`.
     """
 
     samples: Sequence[Sample]
@@ -120,6 +123,7 @@ class Batch:
     T_gt: torch.Tensor
     T_init: torch.Tensor
     _maps: list[Any] | None = field(default=None, repr=False)
+    memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def maps(self) -> list[Any]:

@@ -29,9 +29,11 @@ class Dataset(ABC):
         default_budgets: budgets (metres or normalised units) used when none are given.
 
     ``dataset[i]`` returns the i-th sample of the chosen split; the same constructor arguments
-    always give the same samples. Construction: the runner calls ``cls(seed=..., split=...,
+    always give the same samples. Construction: the runner calls ``cls.create(seed=..., split=...,
     **settings)`` with the user's ``--dataset-param KEY=VALUE`` settings, checked against
-    :meth:`param_types`. A sample whose input file is bad raises :class:`InputError` naming the file
+    :meth:`param_types`; :meth:`create` is ``cls(...)`` unless a dataset overrides it (a
+    factory: ``lidar-sim`` with several towns or sensors builds a mix of single-town datasets).
+    A sample whose input file is bad raises :class:`InputError` naming the file
     from ``dataset[i]``; the runner then skips that sample (error rows) unless ``strict_files``.
     """
 
@@ -39,6 +41,12 @@ class Dataset(ABC):
     description: ClassVar[str] = ""
     icp_preset: ClassVar[str] = "lidar"
     default_budgets: ClassVar[tuple[float, ...]] = (1.0, 2.0, 3.0, 4.0, 5.0)
+
+    @classmethod
+    def create(cls, **settings: Any) -> Dataset:
+        """The dataset for these constructor settings (a subclass may return another
+        :class:`Dataset` made of instances of itself, e.g. a mix)."""
+        return cls(**settings)
 
     @classmethod
     def param_types(cls) -> dict[str, Any]:

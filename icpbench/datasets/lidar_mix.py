@@ -1,6 +1,6 @@
 """Several ``lidar-sim`` towns and sensors as one dataset (training on variety).
 
-``LidarSimDataset(town_seed=[1, 2, 3], sensor=["sim32", "hdl64"], split="train")`` (or on the
+``LidarSimDataset.create(town_seed=[1, 2, 3], sensor=["sim32", "hdl64"], split="train")`` (or on the
 command line ``--dataset-param town_seed=[1,2,3] --dataset-param sensor=[sim32,hdl64]``) returns
 a :class:`LidarSimMix`: one single-town :class:`~icpbench.datasets.lidar_sim.LidarSimDataset` per
 (town, sensor) combination, built with the same other parameters, each generated and cached once

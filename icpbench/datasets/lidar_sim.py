@@ -32,7 +32,8 @@ moving road users in the repeat passes that never reach the map); ``sensor=NAME`
 preset (:mod:`icpbench.datasets.sensors`: ``sim32`` (default), ``vlp16``, ``hdl32``, ``hdl64``,
 ``os128``), with ``lidar={...}`` overriding its fields. Without them, the original town and sensor
 are generated exactly as before (same scans, sample ids and cache folder). A *list* of town seeds
-and/or sensors (``town_seed=[1,2,3]``) gives a :class:`~icpbench.datasets.lidar_mix.LidarSimMix`:
+and/or sensors (``town_seed=[1,2,3]``) makes :meth:`LidarSimDataset.create` (what the runner calls)
+return a :class:`~icpbench.datasets.lidar_mix.LidarSimMix`:
 every (town, sensor) combination, each generated and cached once in its own folder, shuffled
 together; evaluate on other town seeds for a generalisation split.
 
@@ -121,15 +122,15 @@ class LidarSimDataset(Dataset):
     icp_preset: ClassVar[str] = "lidar"
     default_budgets: ClassVar[tuple[float, ...]] = (1.0, 2.0, 3.0, 4.0, 5.0)
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+    @classmethod
+    def create(cls, **settings: Any) -> Dataset:
         """Several town seeds or sensors give a :class:`~icpbench.datasets.lidar_mix.LidarSimMix`
-        of single-town datasets instead (same name, same parameters)."""
-        if cls is LidarSimDataset and (_is_multi(kwargs.get("town_seed"))
-                                       or _is_multi(kwargs.get("sensor"))):
+        of single-town datasets (same name, same other parameters); one of each, this class."""
+        if _is_multi(settings.get("town_seed")) or _is_multi(settings.get("sensor")):
             from icpbench.datasets.lidar_mix import LidarSimMix
 
-            return LidarSimMix(*args, **kwargs)
-        return super().__new__(cls)
+            return LidarSimMix(**settings)
+        return cls(**settings)
 
     def __init__(self, *, seed: int = 0, split: Split = "test", n_points: int = 10_000,
                  n_passes: int = 6, test_passes: Sequence[int] = (1, 2),
@@ -144,6 +145,9 @@ class LidarSimDataset(Dataset):
                  offset_trans_m: float = 0.3, offset_rot_deg: float = 10.0,
                  order: Literal["shuffled", "route"] = "shuffled", cache_dir: str | Path | None = None,
                  threads: int = 1) -> None:
+        if _is_multi(town_seed) or _is_multi(sensor):
+            raise InputError("several town seeds or sensors make a mix: build it with "
+                             "LidarSimDataset.create(...) (the runner does)")
         town_seed, sensor = _single(town_seed), _single(sensor)
         if town_seed is not None:
             if isinstance(town_seed, bool) or not isinstance(town_seed, int | np.integer):

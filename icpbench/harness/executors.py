@@ -24,6 +24,7 @@ plugin crashes inside is already turned into error rows by the worker.
 
 from __future__ import annotations
 
+import logging
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
@@ -138,6 +139,11 @@ class RayExecutor(Executor):
         ray = self.ray
         owns = not ray.is_initialized()
         if owns:
+            # Ray announces at every start that token authentication (its default for a new
+            # local cluster) is on: library noise to an icpbench user, so that one logger is
+            # quietened; Ray's other warnings still show
+            logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(
+                logging.ERROR)
             ray.init(address=self.address, include_dashboard=False, logging_level="WARNING",
                      log_to_driver=False)
         actors: list[Any] = []

@@ -45,8 +45,9 @@ class RunProgress:
 
     def __init__(self, total: int, *, done: int = 0, desc: str = "icpbench", unit: str = "unit",
                  enabled: bool = True, stream: TextIO | None = None, interval_s: float = 60.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, warmup: int = 1) -> None:
         self.total, self.done, self.start_done = int(total), int(done), int(done)
+        self.warmup = max(1, int(warmup))
         self.desc, self.unit, self.enabled = desc, unit, enabled
         self.stream = stream if stream is not None else sys.stderr
         self.interval_s, self.clock = float(interval_s), clock
@@ -63,15 +64,21 @@ class RunProgress:
         print(f"{self.desc}: {text}", file=self.stream, flush=True)
 
     def status(self) -> str:
-        """``done/total units (pct), rate, time left`` (rate over the units computed here)."""
+        """``done/total units (pct), rate, time left`` (rate over the units computed here).
+
+        The time left is shown once ``warmup`` units were computed here (e.g. one work item's
+        units: cheap and expensive units then weigh as they will over the run, and start-up is
+        a small part of the elapsed time); before that the line says it is still estimating."""
         elapsed = max(self.clock() - self.t0, 1e-9)
         new = self.done - self.start_done
         pct = 100.0 * self.done / self.total if self.total else 100.0
         text = f"{self.done}/{self.total} {self.unit}s ({pct:.0f}%)"
-        if new > 0:
+        if new >= self.warmup:
             rate = new / elapsed
             left = (self.total - self.done) / rate
             text += f", {rate:.3g} {self.unit}s/s, about {_duration(left)} left"
+        elif self.done < self.total:
+            text += ", estimating the time left"
         return text
 
     def update(self, n: int = 1) -> None:

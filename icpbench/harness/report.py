@@ -5,13 +5,21 @@ Table 1 (Zhang et al. 2025): rows = attacks, and per budget two columns, "Trans 
 samples where the reference attack's error is larger than the row attack's). Pairs share
 (sample, target, budget, seed) and are kept only when both rows converged; a tie counts as "not
 larger". Non-converged and failed rows are excluded and counted.
+
+Where that rule leaves too little (fewer than two converged runs for a mean ± std, no converged pair
+for the share), a cell shows the same figure over all runs with a finite error instead (non-converged
+runs at their final error), marked with :data:`ALL_RUNS_MARK` and explained under the table. A second
+table of the same shape gives each cell's counts (runs / converged / pairs). The unit is metres, or
+"units" for datasets with normalised coordinates (:data:`NORMALISED_DATASETS`).
 """
 
 from __future__ import annotations
 
+import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import pandas as pd
@@ -20,6 +28,8 @@ from tabulate import tabulate
 from icpbench.core.errors import InputError
 
 Format = Literal["md", "latex", "csv"]
+#: Which runs a figure covers: "converged" (the paper's rule) or "all" (every finite error).
+Basis = Literal["converged", "all"]
 PAIR_KEYS = ["sample_id", "target", "budget", "seed"]
 
 #: Display names and the paper's row order; unknown attacks go before the reference.
@@ -28,6 +38,15 @@ DISPLAY = {"none": "Original", "uniform": "Uniform", "normal": "Normal",
            "pgd": "PGD (oracle)", "generator": "Ours",
            "generator-refine": "Ours + 3 steps"}
 ORDER = ["none", "uniform", "normal", "sector", "sector-iter", "pgd"]
+
+#: Datasets whose coordinates are normalised (each object scaled to the unit sphere), not metres.
+NORMALISED_DATASETS = frozenset({"objects", "meshes"})
+#: Mark of a cell that shows the all-runs figure because the converged-runs rule leaves too little.
+ALL_RUNS_MARK = "†"
+#: Cell text where no run (or no pair) has a finite error.
+EMPTY = "—"
+#: Fewest runs for a mean ± std; with fewer the cell falls back to all runs (or shows one value).
+MIN_RUNS_FOR_STD = 2
 
 
 def attack_order(attacks: list[str], reference: str | None) -> list[str]:
@@ -38,9 +57,36 @@ def attack_order(attacks: list[str], reference: str | None) -> list[str]:
     return known + other + tail
 
 
+def error_unit(metric: str = "trans_err_xy", dataset: str | None = None) -> str:
+    """Unit of ``metric`` (no brackets): "rad" for rotation errors; for translation errors "units" on
+    a dataset with normalised coordinates (:data:`NORMALISED_DATASETS`), else "m"."""
+    if not metric.startswith("trans"):
+        return "rad"
+    return "units" if dataset in NORMALISED_DATASETS else "m"
+
+
+def run_dataset(results_dir: str | Path) -> str | None:
+    """The dataset name a results folder's ``manifest.json`` records (``config.dataset``), or None
+    when there is no manifest or it names none. ``results_dir`` may also be the results CSV."""
+    from icpbench.harness.results import read_manifest
+
+    p = Path(results_dir)
+    manifest = read_manifest(p if p.is_dir() else p.parent)
+    name = ((manifest or {}).get("config") or {}).get("dataset")
+    return name if isinstance(name, str) else None
+
+
 @dataclass
 class Cell:
-    """One (attack, budget) cell of Table 1."""
+    """One (attack, budget) cell of Table 1: the statistics of both bases.
+
+    ``mean``, ``std`` (population std, ddof=0, in the metric's unit) and ``n`` cover the converged
+    runs with a finite error (NaN, NaN, 0 when none); ``dropped`` = ``runs`` - ``n`` (not converged
+    or failed). ``pct_ref_larger`` [%] and ``n_pairs``: share of pairs where the reference's error is
+    larger, over pairs where both runs converged (None, 0 when there is none, and for the reference
+    itself). The ``*_all`` fields and ``n_finite`` are the same over every run with a finite error,
+    non-converged runs at their final error; ``runs`` counts every row of the cell.
+    """
 
     mean: float
     std: float
@@ -48,6 +94,60 @@ class Cell:
     dropped: int
     pct_ref_larger: float | None
     n_pairs: int
+    runs: int = 0
+    mean_all: float = float("nan")
+    std_all: float = float("nan")
+    n_finite: int = 0
+    pct_all: float | None = None
+    n_pairs_all: int = 0
+
+
+@dataclass(frozen=True)
+class Figure:
+    """What a cell shows: ``value`` (a mean error, or a share in percent; None: nothing to show),
+    ``std`` (None: a single value, no spread), ``count`` (runs or pairs behind it) and ``basis``
+    ("converged": the paper's rule; "all": every run or pair with a finite error; None: nothing)."""
+
+    value: float | None
+    std: float | None
+    count: int
+    basis: Basis | None
+
+
+def error_figure(cell: Cell) -> Figure:
+    """The error a cell shows: mean ± std over converged runs when at least
+    :data:`MIN_RUNS_FOR_STD` converged; else mean ± std over all runs with a finite error when there
+    are that many; else the one value there is, without a std (converged basis when it converged)."""
+    if cell.n >= MIN_RUNS_FOR_STD:
+        return Figure(cell.mean, cell.std, cell.n, "converged")
+    if cell.n_finite >= MIN_RUNS_FOR_STD:
+        return Figure(cell.mean_all, cell.std_all, cell.n_finite, "all")
+    if cell.n == 1:
+        return Figure(cell.mean, None, 1, "converged")
+    if cell.n_finite == 1:
+        return Figure(cell.mean_all, None, 1, "all")
+    return Figure(None, None, 0, None)
+
+
+def pct_figure(cell: Cell) -> Figure:
+    """The "% Ours is Larger" a cell shows: over pairs where both runs converged when there is one,
+    else over all pairs with a finite error, else nothing."""
+    if cell.n_pairs:
+        return Figure(cell.pct_ref_larger, None, cell.n_pairs, "converged")
+    if cell.n_pairs_all:
+        return Figure(cell.pct_all, None, cell.n_pairs_all, "all")
+    return Figure(None, None, 0, None)
+
+
+def format_figure(fig: Figure, decimals: int, suffix: str = "") -> str:
+    """``value[suffix] ± std``, without the ± for a single value, ending in :data:`ALL_RUNS_MARK` on
+    the all-runs basis; :data:`EMPTY` when there is nothing to show."""
+    if fig.basis is None or fig.value is None:
+        return EMPTY
+    text = f"{fig.value:.{decimals}f}{suffix}"
+    if fig.std is not None:
+        text += f" ± {fig.std:.{decimals}f}"
+    return text + (f" {ALL_RUNS_MARK}" if fig.basis == "all" else "")
 
 
 def pct_reference_larger(df: pd.DataFrame, attack: str, reference: str,
@@ -68,9 +168,12 @@ def pct_reference_larger(df: pd.DataFrame, attack: str, reference: str,
     return float(100.0 * (m[f"{metric}_r"] > m[f"{metric}_a"]).mean()), int(len(m))
 
 
-def table1_cells(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
-                 metric: str = "trans_err_xy") -> dict[tuple[str, float], Cell]:
-    """Compute every cell of Table 1 for one target (default: the only target in ``df``)."""
+def select_target(df: pd.DataFrame, target: str | None = None) -> pd.DataFrame:
+    """The rows of one target (default: the only target in ``df``).
+
+    Raises:
+        InputError: no rows, several targets and none chosen, or an unknown target.
+    """
     if df.empty:
         raise InputError("no result rows to tabulate")
     targets = sorted(df["target"].unique())
@@ -80,17 +183,37 @@ def table1_cells(df: pd.DataFrame, reference: str = "generator", target: str | N
         target = targets[0]
     elif target not in targets:
         raise InputError(f"target {target!r} not in results; available: {', '.join(targets)}")
-    d = df[df["target"] == target]
+    return df[df["target"] == target]
+
+
+def _stats(values: np.ndarray) -> tuple[float, float, int]:
+    """Mean, population std (ddof=0) and count of the finite ``values`` (NaN, NaN, 0 when none)."""
+    v = values[np.isfinite(values)]
+    if not v.size:
+        return float("nan"), float("nan"), 0
+    return float(v.mean()), float(v.std(ddof=0)), int(v.size)
+
+
+def table1_cells(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
+                 metric: str = "trans_err_xy") -> dict[tuple[str, float], Cell]:
+    """Compute every cell of Table 1 for one target (default: the only target in ``df``)."""
+    d = select_target(df, target)
+    has_ref = reference in set(d["attack"])
     cells = {}
     for (attack, budget), g in d.groupby(["attack", "budget"]):
-        ok = g[g["converged"]][metric].to_numpy(dtype=float)
-        pct, n_pairs = (None, 0)
-        if reference in set(d["attack"]) and attack != reference:
-            pct, n_pairs = pct_reference_larger(d[d["budget"] == budget], attack, reference, metric)
+        err = g[metric].to_numpy(dtype=float)
+        mean, std, n = _stats(err[g["converged"].to_numpy(dtype=bool)])
+        mean_all, std_all, n_finite = _stats(err)
+        pct, n_pairs, pct_all, n_pairs_all = None, 0, None, 0
+        if has_ref and attack != reference:
+            at_b = d[d["budget"] == budget]
+            pct, n_pairs = pct_reference_larger(at_b, attack, reference, metric)
+            pct_all, n_pairs_all = pct_reference_larger(at_b, attack, reference, metric,
+                                                        converged_only=False)
         cells[(attack, float(budget))] = Cell(
-            mean=float(ok.mean()) if ok.size else float("nan"),
-            std=float(ok.std(ddof=0)) if ok.size else float("nan"),
-            n=int(ok.size), dropped=int(len(g) - ok.size), pct_ref_larger=pct, n_pairs=n_pairs)
+            mean=mean, std=std, n=n, dropped=int(len(g) - n), pct_ref_larger=pct, n_pairs=n_pairs,
+            runs=int(len(g)), mean_all=mean_all, std_all=std_all, n_finite=n_finite,
+            pct_all=pct_all, n_pairs_all=n_pairs_all)
     return cells
 
 
@@ -101,47 +224,184 @@ def auto_decimals(budgets) -> int:
     return 2 if smallest >= 1.0 else 2 + int(np.ceil(-np.log10(smallest)))
 
 
-def table1_frame(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
-                 metric: str = "trans_err_xy", decimals: int | None = None) -> pd.DataFrame:
-    """Table 1 as a DataFrame of strings (rows = attacks, two columns per budget)."""
-    cells = table1_cells(df, reference, target, metric)
-    if decimals is None:
-        decimals = auto_decimals(b for _, b in cells)
-    attacks = attack_order(sorted({a for a, _ in cells}), reference)
+def _grid(cells: dict[tuple[str, float], Cell], reference: str,
+          text: Callable[[str, float, Cell | None], dict[str, str]],
+          attacks: list[str] | None = None) -> pd.DataFrame:
+    """A frame with one row per attack (paper order, "Method" = display name) and the columns
+    ``text(attack, budget, cell)`` returns for each budget (cell None: not run at that budget)."""
+    if attacks is None:
+        attacks = attack_order(sorted({a for a, _ in cells}), reference)
     budgets = sorted({b for _, b in cells})
-    has_ref = reference in attacks
-    unit = "[m]" if metric.startswith("trans") else "[rad]"
     rows = []
     for a in attacks:
         row = {"Method": DISPLAY.get(a, a)}
         for b in budgets:
-            c = cells.get((a, b))
-            lam = f"λ={b:g}"
-            if c is None:
-                row[f"{lam} Trans Pose Error {unit}"] = "n/a"
-                row[f"{lam} % Ours is Larger"] = "n/a"
-                continue
-            row[f"{lam} Trans Pose Error {unit}"] = (f"{c.mean:.{decimals}f} ± {c.std:.{decimals}f}"
-                                                     if c.n else "n/a")
-            if not has_ref:
-                row[f"{lam} % Ours is Larger"] = f"({reference} not run)"
-            elif a == reference:
-                row[f"{lam} % Ours is Larger"] = "-"
-            elif c.pct_ref_larger is None:
-                row[f"{lam} % Ours is Larger"] = "no pairs"
-            else:
-                row[f"{lam} % Ours is Larger"] = f"{c.pct_ref_larger:.2f}%"
+            row.update(text(a, b, cells.get((a, b))))
         rows.append(row)
     return pd.DataFrame(rows)
 
 
+def _pct_text(attack: str, cell: Cell | None, reference: str, has_ref: bool) -> str:
+    """A "% Ours is Larger" cell: the share with two decimals, "-" for the reference itself."""
+    if not has_ref:
+        return f"({reference} not run)"
+    if attack == reference:
+        return "-"
+    return EMPTY if cell is None else format_figure(pct_figure(cell), 2, "%")
+
+
+def _main_frame(cells: dict[tuple[str, float], Cell], reference: str, unit: str,
+                decimals: int | None) -> pd.DataFrame:
+    """Table 1 strings from computed cells (see :func:`table1_frame`)."""
+    if decimals is None:
+        decimals = auto_decimals(b for _, b in cells)
+    has_ref = reference in {a for a, _ in cells}
+
+    def text(a: str, b: float, c: Cell | None) -> dict[str, str]:
+        err = EMPTY if c is None else format_figure(error_figure(c), decimals)
+        return {f"λ={b:g} Trans Pose Error [{unit}]": err,
+                f"λ={b:g} % Ours is Larger": _pct_text(a, c, reference, has_ref)}
+
+    return _grid(cells, reference, text)
+
+
+def table1_frame(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
+                 metric: str = "trans_err_xy", decimals: int | None = None, *,
+                 dataset: str | None = None) -> pd.DataFrame:
+    """Table 1 as a DataFrame of strings: rows = attacks (paper order), per budget λ two columns.
+
+    "λ=<b> Trans Pose Error [<unit>]": mean ± std of ``metric`` (:func:`error_figure`; unit from
+    :func:`error_unit` and ``dataset``). "λ=<b> % Ours is Larger": share of pairs where the
+    reference's error is larger (:func:`pct_figure`), "-" in the reference's own row. A cell on the
+    all-runs basis ends in :data:`ALL_RUNS_MARK`; :data:`EMPTY` where no run or pair has a finite error.
+    """
+    cells = table1_cells(df, reference, target, metric)
+    return _main_frame(cells, reference, error_unit(metric, dataset), decimals)
+
+
 def table1_counts(df: pd.DataFrame, reference: str = "generator",
                   target: str | None = None) -> pd.DataFrame:
-    """Per (attack, budget): converged n, dropped (not converged or failed) and pair counts."""
+    """Long form, one row per (attack, budget): ``n`` converged runs, ``dropped`` (not converged or
+    failed), ``pairs`` (pairs with the reference, both converged), ``runs`` (all rows) and
+    ``pairs_all`` (pairs with a finite error)."""
     cells = table1_cells(df, reference, target)
     return pd.DataFrame(
-        [{"attack": a, "budget": b, "n": c.n, "dropped": c.dropped, "pairs": c.n_pairs}
+        [{"attack": a, "budget": b, "n": c.n, "dropped": c.dropped, "pairs": c.n_pairs,
+          "runs": c.runs, "pairs_all": c.n_pairs_all}
          for (a, b), c in sorted(cells.items())])
+
+
+#: What the three numbers of a counts cell are.
+COUNTS_HEADER = "runs / converged / pairs"
+
+
+def _counts_grid(cells: dict[tuple[str, float], Cell], reference: str) -> pd.DataFrame:
+    """Counts table from computed cells (see :func:`counts_frame`)."""
+    has_ref = reference in {a for a, _ in cells}
+
+    def text(a: str, b: float, c: Cell | None) -> dict[str, str]:
+        if c is None:
+            return {f"λ={b:g}": "0 / 0 / 0"}
+        pairs = str(c.n_pairs) if has_ref and a != reference else "-"
+        return {f"λ={b:g}": f"{c.runs} / {c.n} / {pairs}"}
+
+    return _grid(cells, reference, text)
+
+
+def counts_frame(df: pd.DataFrame, reference: str = "generator",
+                 target: str | None = None) -> pd.DataFrame:
+    """The counts behind Table 1, same rows (attacks) and one column "λ=<b>" per budget; each cell
+    ``runs / converged / pairs`` (:data:`COUNTS_HEADER`): all rows, converged runs with a finite error
+    (the paper's mean ± std), and pairs with the reference where both converged (its "% Ours is
+    Larger"); pairs are "-" in the reference's row or when the reference was not run."""
+    return _counts_grid(table1_cells(df, reference, target), reference)
+
+
+def _all_pairs_grid(cells: dict[tuple[str, float], Cell], reference: str) -> pd.DataFrame:
+    """All-pairs shares from computed cells (see :func:`all_pairs_frame`)."""
+    attacks = attack_order(sorted({a for a, _ in cells}), reference)
+    if reference not in attacks:
+        return pd.DataFrame()
+
+    def text(a: str, b: float, c: Cell | None) -> dict[str, str]:
+        ok = c is not None and c.pct_all is not None
+        return {f"λ={b:g}": f"{c.pct_all:.1f}% of {c.n_pairs_all}" if ok else EMPTY}
+
+    return _grid(cells, reference, text, [a for a in attacks if a != reference])
+
+
+def all_pairs_frame(df: pd.DataFrame, reference: str = "generator",
+                    target: str | None = None) -> pd.DataFrame:
+    """"% Ours is Larger" over every pair with a finite error (non-converged runs at their final
+    error), one column "λ=<b>" per budget, cells ``<share>% of <pairs>``; the reference's row left
+    out, and no rows at all when the reference was not run."""
+    return _all_pairs_grid(table1_cells(df, reference, target), reference)
+
+
+def displacement_frame(df: pd.DataFrame, reference: str = "generator",
+                       unit: str = "m") -> pd.DataFrame:
+    """Budget audit of the attack base class, one row per attack with a non-zero displacement and
+    one column "λ=<b>" per budget: ``<largest point displacement [unit]> / <mean share [%] of points
+    moved beyond λ>`` over all samples (soft-bound attacks can exceed λ). Empty when ``df`` has no
+    ``disp_max``/``frac_over_budget`` columns."""
+    if df.empty or not {"disp_max", "frac_over_budget"} <= set(df.columns):
+        return pd.DataFrame()
+    moved = df.groupby("attack")["disp_max"].apply(lambda s: bool((s.fillna(0) > 0).any()))
+    attacks = attack_order([a for a, m in moved.items() if m], reference)
+    budgets = sorted(df["budget"].unique())
+    rows = []
+    for a in attacks:
+        g = df[df["attack"] == a]
+        row = {"Method": DISPLAY.get(a, a)}
+        for b in budgets:
+            gb = g[g["budget"] == b]
+            row[f"λ={b:g}"] = (f"{gb['disp_max'].max():.3g} / {100 * gb['frac_over_budget'].mean():.2f}%"
+                               if len(gb) else EMPTY)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _reused_s(extra: Any) -> float:
+    """``reused_s`` of a row's ``extra`` (a dict or its JSON text): seconds per scan the attack took
+    from work another row of the same batch had done (0 when absent)."""
+    if isinstance(extra, str):
+        try:
+            extra = json.loads(extra)
+        except ValueError:
+            return 0.0
+    v = extra.get("reused_s", 0.0) if isinstance(extra, dict) else 0.0
+    return float(v) if v == v else 0.0
+
+
+def _scan_times(df: pd.DataFrame) -> pd.DataFrame:
+    """Mean attack wall time per scan [s] per attack, over all budgets (one row per scan, budget
+    and seed: a scan attacked once is timed once whatever the number of targets): column ``run``
+    (what the attack took in this run) and ``alone`` (plus the work it reused from another row of
+    the batch, e.g. the generator's prior computed by ``sector-iter``: what it costs on its own)."""
+    d = df.drop_duplicates(["sample_id", "attack", "budget", "seed"]).copy()
+    reused = d["extra"].map(_reused_s) if "extra" in d.columns else 0.0
+    d["alone"] = d["attack_time_s"] + reused
+    return d.groupby("attack").agg(run=("attack_time_s", "mean"), alone=("alone", "mean"))
+
+
+def timing_frame(df: pd.DataFrame, reference: str = "generator") -> pd.DataFrame:
+    """Attack wall time per scan: columns "Method", "Attack time per scan [s]" (mean over all
+    budgets, from ``attack_time_s``: one attack pass per batch divided by its size), "Alone [s]"
+    (the same plus the work it reused from another row of its batch) and "Ratio to <reference>"
+    of the times alone ("-" in the reference's row or when it has no time). Empty without
+    timings."""
+    if df.empty or "attack_time_s" not in df.columns:
+        return pd.DataFrame()
+    t = _scan_times(df)
+    ref = t["alone"].get(reference)
+    name = DISPLAY.get(reference, reference)
+    rows = []
+    for a in attack_order(list(t.index), reference):
+        alone = t.loc[a, "alone"]
+        ratio = f"{alone / ref:.2g}x" if ref and ref > 0 and a != reference else "-"
+        rows.append({"Method": DISPLAY.get(a, a), "Attack time per scan [s]": f"{t.loc[a, 'run']:.3g}",
+                     "Alone [s]": f"{alone:.3g}", f"Ratio to {name}": ratio})
+    return pd.DataFrame(rows)
 
 
 def health_warnings(df: pd.DataFrame, threshold: float = 0.10) -> list[str]:
@@ -154,57 +414,6 @@ def health_warnings(df: pd.DataFrame, threshold: float = 0.10) -> list[str]:
             reasons = g.loc[~g["converged"], "status"].value_counts().to_dict()
             out.append(f"warning: {a} on {t} at λ={b:g}: {100 * bad:.0f}% of {len(g)} samples "
                        f"not converged/failed ({', '.join(f'{k}: {v}' for k, v in reasons.items())})")
-    return out
-
-
-def all_pairs_notes(df: pd.DataFrame, reference: str) -> list[str]:
-    """Footer: "% Ours is Larger" over every pair with a finite error, non-converged runs counted
-    at their final error (the table itself pairs converged runs only, as the paper does)."""
-    if df.empty or reference not in set(df["attack"]):
-        return []
-    parts = []
-    for a in attack_order(sorted(set(df["attack"]) - {reference}), reference):
-        for b in sorted(df["budget"].unique()):
-            pct, n = pct_reference_larger(df[df["budget"] == b], a, reference, converged_only=False)
-            if pct is not None:
-                parts.append(f"{DISPLAY.get(a, a)} λ={b:g}: {pct:.1f}% of {n}")
-    if not parts:
-        return []
-    return [f"% {DISPLAY.get(reference, reference)} is larger incl. non-converged runs: "
-            + "; ".join(parts)]
-
-
-def timing_notes(df: pd.DataFrame, reference: str) -> list[str]:
-    """Footer: mean attack wall time per scan (all budgets), and each attack's ratio to the
-    reference's, from the ``attack_time_s`` column (one attack pass per batch, divided by B)."""
-    if df.empty or "attack_time_s" not in df.columns:
-        return []
-    t = df.drop_duplicates(["sample_id", "attack", "budget", "seed"]).groupby("attack")[
-        "attack_time_s"].mean()
-    ref = t.get(reference)
-    parts = []
-    for a in attack_order(list(t.index), reference):
-        ratio = f" ({t[a] / ref:.2g}x {DISPLAY.get(reference, reference)})" if (
-            ref and ref > 0 and a != reference) else ""
-        parts.append(f"{DISPLAY.get(a, a)} {t[a]:.3g}{ratio}")
-    return ["attack time per scan [s]: " + "; ".join(parts)]
-
-
-def displacement_notes(df: pd.DataFrame) -> list[str]:
-    """One footer line per attack with a non-zero displacement: per budget the largest point
-    displacement over all samples and the mean share of points moved beyond lambda (the budget
-    audit of the attack base class; soft-bound attacks can exceed lambda)."""
-    need = {"disp_max", "frac_over_budget"}
-    if df.empty or not need <= set(df.columns):
-        return []
-    out = []
-    for a, g in df.groupby("attack", sort=True):
-        if not (g["disp_max"].fillna(0) > 0).any():
-            continue
-        parts = [f"λ={b:g}: max {gb['disp_max'].max():.3g}, "
-                 f"{100 * gb['frac_over_budget'].mean():.2f}% of points over λ"
-                 for b, gb in g.groupby("budget")]
-        out.append(f"displacement audit {DISPLAY.get(a, a)}: " + "; ".join(parts))
     return out
 
 
@@ -272,25 +481,151 @@ def render(frame: pd.DataFrame, fmt: Format = "md") -> str:
     raise InputError(f"unknown format {fmt!r}; valid: md, latex, csv")
 
 
+def table1_long(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
+                metric: str = "trans_err_xy", *, dataset: str | None = None) -> pd.DataFrame:
+    """Table 1 in long form for CSV, one row per (attack, budget) in the paper's order.
+
+    Columns: ``Method`` (display name), ``attack``, ``target``, ``budget`` (λ, in ``unit``),
+    ``metric``, ``unit`` ("m", "units" or "rad"); the shown error ``mean``, ``std`` (empty for a single
+    value), ``error_basis`` ("converged" or "all", empty when no finite error) and ``error_runs``
+    (runs behind it); the shown share ``pct_ours_larger`` [%] (the reference's error larger; empty in
+    its own row), ``pct_basis`` and ``pct_pairs``; the counts ``runs``, ``converged``, ``pairs``
+    (both converged); ``pct_all_pairs`` [%] and ``all_pairs`` (every pair with a finite error);
+    ``disp_max`` [unit] and ``frac_over_budget_pct`` [%] (budget audit) and ``attack_time_s`` (mean
+    per scan at this budget) where the results hold them.
+    """
+    sub = select_target(df, target)
+    cells = table1_cells(df, reference, target, metric)
+    unit = error_unit(metric, dataset)
+    rows = []
+    for a in attack_order(sorted({a for a, _ in cells}), reference):
+        for b in sorted(bb for aa, bb in cells if aa == a):
+            c = cells[(a, b)]
+            err, pct = error_figure(c), pct_figure(c)
+            rows.append({
+                "Method": DISPLAY.get(a, a), "attack": a, "target": sub["target"].iloc[0], "budget": b,
+                "metric": metric, "unit": unit, "mean": err.value, "std": err.std,
+                "error_basis": err.basis, "error_runs": err.count,
+                "pct_ours_larger": pct.value, "pct_basis": pct.basis, "pct_pairs": pct.count,
+                "runs": c.runs, "converged": c.n, "pairs": c.n_pairs,
+                "pct_all_pairs": c.pct_all, "all_pairs": c.n_pairs_all,
+                **_audit_columns(sub[(sub["attack"] == a) & (sub["budget"] == b)])})
+    return pd.DataFrame(rows)
+
+
+#: Columns of :func:`table1_long` that name a row rather than hold a figure.
+_ID_COLUMNS = ("Method", "attack", "target", "budget", "metric", "unit")
+#: Count columns of :func:`table1_long` (integers; empty where an attack did not run at a budget).
+_COUNT_COLUMNS = ("error_runs", "pct_pairs", "runs", "converged", "pairs", "all_pairs")
+
+
+def table1_csv_frame(df: pd.DataFrame, reference: str = "generator", target: str | None = None,
+                     metric: str = "trans_err_xy", *, dataset: str | None = None) -> pd.DataFrame:
+    """Table 1 for CSV: the rows of :func:`table1_frame` (attacks, paper order) and its display
+    columns first, then ``attack``, ``target``, ``unit`` and, per budget, every figure column of
+    :func:`table1_long` named ``λ=<b> <column>`` (e.g. ``λ=1 mean``, ``λ=1 error_basis``,
+    ``λ=1 converged``): numbers, bases and counts a program can read without parsing the text."""
+    cells = table1_cells(df, reference, target, metric)
+    display = _main_frame(cells, reference, error_unit(metric, dataset), None)
+    long = table1_long(df, reference, target, metric, dataset=dataset)
+    values = [c for c in long.columns if c not in _ID_COLUMNS]
+    wide = long.pivot(index="attack", columns="budget", values=values)
+    budgets = sorted(long["budget"].unique())
+    wide = wide[[(v, b) for b in budgets for v in values]]
+    wide.columns = [f"λ={b:g} {v}" for v, b in wide.columns]
+    for col in wide.columns:
+        if col.split(" ", 1)[1] in _COUNT_COLUMNS:
+            wide[col] = wide[col].astype("Int64")
+    attacks = list(dict.fromkeys(long["attack"]))
+    ids = long.drop_duplicates("attack").set_index("attack")[["target", "unit"]]
+    out = pd.concat([ids.loc[attacks], wide.loc[attacks]], axis=1).reset_index()
+    return pd.concat([display, out], axis=1)
+
+
+def _audit_columns(g: pd.DataFrame) -> dict[str, float]:
+    """``disp_max``, ``frac_over_budget_pct`` and ``attack_time_s`` of one cell's rows, for the
+    columns the results hold."""
+    out = {}
+    if "disp_max" in g.columns:
+        out["disp_max"] = float(g["disp_max"].max())
+    if "frac_over_budget" in g.columns:
+        out["frac_over_budget_pct"] = float(100 * g["frac_over_budget"].mean())
+    if "attack_time_s" in g.columns:
+        out["attack_time_s"] = float(g["attack_time_s"].mean())
+    return out
+
+
+def _latex_text(text: str) -> str:
+    """``text`` with LaTeX's special characters in prose (% & _ #) escaped."""
+    for ch in "%&_#":
+        text = text.replace(ch, "\\" + ch)
+    return text
+
+
+def table1_footnotes(frame: pd.DataFrame, reference: str = "generator") -> list[str]:
+    """Lines explaining the marks a Table 1 frame uses (:data:`ALL_RUNS_MARK`, :data:`EMPTY`)."""
+    cells = frame.drop(columns="Method").to_numpy().ravel().tolist()
+    name = DISPLAY.get(reference, reference)
+    out = []
+    if any(str(c).endswith(ALL_RUNS_MARK) for c in cells):
+        out.append(f"{ALL_RUNS_MARK} over all runs, non-converged ones at their final error: the "
+                   f"paper's rule (converged runs; pairs with {name} where both converged) leaves "
+                   f"fewer than {MIN_RUNS_FOR_STD} runs for mean ± std, or no pair for the %.")
+    if EMPTY in cells:
+        out.append(f"{EMPTY} no run (or no pair) with a finite error at this budget.")
+    return out
+
+
+def _section(title: str, frame: pd.DataFrame, fmt: Format) -> str:
+    """A titled secondary table (empty string for an empty frame)."""
+    if frame.empty:
+        return ""
+    if fmt == "latex":
+        return f"\\medskip\n\\noindent {_latex_text(title)}\n\n{render(frame, fmt)}"
+    return f"{title}\n\n{render(frame, fmt)}"
+
+
 def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
-           target: str | None = None) -> str:
-    """Table 1 text, with the counts and health warnings as a footer (md/latex comments)."""
-    frame = table1_frame(df, reference, target)
-    text = render(frame, fmt)
+           target: str | None = None, *, dataset: str | None = None) -> str:
+    """Table 1 text.
+
+    md/latex: Table 1 (:func:`table1_frame`) and the lines explaining its marks; then, as tables of
+    the same format, the counts per cell (:func:`counts_frame`), "% Ours is Larger" over all pairs
+    (:func:`all_pairs_frame`), the displacement audit (:func:`displacement_frame`) and the attack
+    time per scan (:func:`timing_frame`); then the load and health warnings, one per line (LaTeX:
+    as comments). csv: :func:`table1_csv_frame`. ``dataset`` picks the unit (:func:`error_unit`).
+    """
     if fmt == "csv":
-        return text
-    counts = table1_counts(df, reference, target)
-    sub = df if target is None else df[df["target"] == target]
-    notes = ["n converged / dropped / pairs per cell: " + "; ".join(
-        f"{DISPLAY.get(r.attack, r.attack)} λ={r.budget:g}: {r.n}/{r.dropped}/{r.pairs}"
-        for r in counts.itertuples())]
-    notes += load_notes(df)
-    notes += all_pairs_notes(sub, reference)
-    notes += displacement_notes(sub)
-    notes += timing_notes(sub, reference)
-    notes += health_warnings(sub)
-    prefix = "% " if fmt == "latex" else ""
-    return text + "\n\n" + "\n".join(prefix + n for n in notes) + "\n"
+        return render(table1_csv_frame(df, reference, target, dataset=dataset), fmt)
+    sub = select_target(df, target)
+    cells = table1_cells(df, reference, target)
+    unit = error_unit("trans_err_xy", dataset)
+    main = _main_frame(cells, reference, unit, None)
+    name = DISPLAY.get(reference, reference)
+    text = render(main, fmt)
+    notes = table1_footnotes(main, reference)
+    if notes and fmt == "latex":
+        text += "\n\n" + "\n\n".join(_latex_text(n) for n in notes)  # one paragraph each
+    elif notes:
+        text += "\n\n" + "\n".join(notes)
+    sections = [
+        (f"Runs per cell: {COUNTS_HEADER} (runs: all; converged: the runs behind mean ± std; pairs: "
+         f"pairs with {name} where both converged, behind the %)", _counts_grid(cells, reference)),
+        (f"% {name} is larger incl. non-converged runs (all pairs with a finite error; share of "
+         "pairs)", _all_pairs_grid(cells, reference)),
+        (f"Displacement audit: largest point displacement [{unit}] / mean share of points moved "
+         "beyond λ", displacement_frame(sub, reference, unit)),
+        ("Attack time per scan [s], mean over all budgets", timing_frame(sub, reference)),
+    ]
+    for title, frame in sections:
+        part = _section(title, frame, fmt)
+        if part:
+            text += "\n\n" + part
+    warnings = load_notes(df) + health_warnings(sub)
+    if warnings:
+        prefix = "% " if fmt == "latex" else ""
+        text += "\n\n" + "\n".join(prefix + w for w in warnings)
+    return text + "\n"
 
 
 def transfer_frame(df: pd.DataFrame, budget: float | None = None, metric: str = "trans_err_xy",

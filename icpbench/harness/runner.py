@@ -267,10 +267,10 @@ def build_attack(name: str, strict: bool, params: dict[str, Any] | None = None) 
 
 
 def load_dataset(cfg: RunConfig) -> Dataset:
-    """Instantiate the configured dataset as ``cls(seed=..., split=..., **settings)``."""
+    """Build the configured dataset with ``cls.create(seed=..., split=..., **settings)``."""
     cls = registry.datasets.get(cfg.dataset)
-    return cls(seed=cfg.dataset_seed, split=cfg.split,
-               **registry.datasets.check_params(cfg.dataset, cfg.dataset_params))
+    return cls.create(seed=cfg.dataset_seed, split=cfg.split,
+                      **registry.datasets.check_params(cfg.dataset, cfg.dataset_params))
 
 
 def sample_id(dataset: Dataset, i: int) -> str:
@@ -441,8 +441,11 @@ def _run_items(cfg: RunConfig, worker: GridWorker, store: ResultsStore, manifest
                 items.append(WorkItem(seed=seed, start=start,
                                       stop=min(start + cfg.batch_size, n), units=units))
     todo = sum(len(it.units) for it in items)
+    workers = max(1, _cpu_count()) if cfg.executor != "local" else 1
+    # time left once about one item per worker is done: units differ in cost, items do not
+    per_item = max((len(it.units) for it in items), default=1)
     bar = RunProgress(total=total, done=total - todo, desc="icpbench run", unit="unit",
-                      enabled=progress)
+                      enabled=progress, warmup=per_item * min(workers, max(len(items), 1)))
     executor = get_executor(cfg.executor, threads=cfg.threads)
     skipped: dict[str, str] = {}
     done_units = 0

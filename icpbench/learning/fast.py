@@ -27,11 +27,11 @@ rounding; tests/test_generator_fast.py compares the two), rearranged for a CPU w
   for ``a < 0``, so the largest tensor of each level is only read once more;
 * **interpolation as k weighted row gathers** (``index_select`` + ``addcmul``) instead of a
   batched (1 x k) x (k x C) product: 0.5 against 5.8 ms per level;
-* **constant head inputs folded into the bias**: the budget channel of conditioned models and the
-  global feature enter every point equally, so ``W [h; c] + b = W_h h + (b + c W_c)``.
+* **constant head inputs folded into the bias**: the budget channel of conditioned models enters
+  every point equally, so ``W [h; c] + b = W_h h + (b + c W_c)``.
 
-Used by :meth:`Generator.forward` when autograd is off, the device is the CPU and the norm is
-``group`` or ``none`` (:func:`eligible`); training keeps the autograd path.
+Used by :meth:`Generator.forward` when autograd is off and the device is the CPU
+(:func:`eligible`); training keeps the autograd path.
 """
 
 from __future__ import annotations
@@ -73,9 +73,8 @@ class Workspace:
 
 
 def eligible(model: Generator, x: Tensor) -> bool:
-    """Whether :func:`forward` applies: no autograd, CPU tensors, per-sample norm."""
-    return (not torch.is_grad_enabled() and x.device.type == "cpu"
-            and model.config.norm in ("group", "none"))
+    """Whether :func:`forward` applies: no autograd, CPU tensors."""
+    return not torch.is_grad_enabled() and x.device.type == "cpu"
 
 
 class _Stats:
@@ -109,8 +108,6 @@ class _Stats:
         a channel alike, so the sums about ``s`` are those of ``y + bias`` about ``s + bias``."""
         bias = bias.double()
         C = self.s1.shape[0]
-        if not isinstance(norm, nn.GroupNorm):  # "none"
-            return torch.ones(C, dtype=torch.float64), bias
         assert self.shift is not None
         G, P = norm.num_groups, self.rows
         cnt = P * (C // G)
@@ -279,8 +276,6 @@ def _sample(model: Generator, ws: Workspace, x: Tensor, geo: Geometry, b: int,
             assert budget is not None
             c = budget[b].double() / cfg.budget_scale_m
             W, bias = W[:, :-1], bias + c * W[:, -1].double()
-        if i == 0 and model.glob is not None:
-            bias = bias + model.glob(f4.amax(0)).double()
         if relu is None:
             w_t = W.T.contiguous()
         else:  # the previous layer's ReLU (and its bias) folded into this one

@@ -28,7 +28,7 @@ Levels and index spaces (``n1 = N``, ``n_k = floor(N / a_k)`` with ``(a_2, a_3, 
   *squared* distance; the paper's wording "inversely proportional to their distances" is also
   available as ``p = 1``.
 
-Exact FPS (``fps="exact"``) is vanilla FPS (Eldar et al., ICPR 1994) from Open3D's
+FPS is vanilla FPS (Eldar et al., ICPR 1994) from Open3D's
 ``farthest_point_down_sample`` in double precision: once on the scan for level 2, then on level 2
 for level 3 and on level 3 for level 4 (FPS restricted to a set that contains the first m picks
 makes the same first m picks, because each pick is the farthest point of the whole scan and so of
@@ -43,10 +43,7 @@ from the centroid (ties, within 1e-12 relative, broken by the lexicographically 
 coordinates), so permuting the input points permutes level 1 and leaves the level 2-4 point sets
 unchanged (their order inside a part follows the scan index). Exact ties inside FPS or kNN
 (duplicate points, symmetric layouts) are broken by index order by the libraries, so equivariance
-holds for clouds in general position. The fast ``fps="bucket"`` sampler (QuickFPS,
-``fpsample.bucket_fps_kdline_sampling``; levels are prefixes of its sequence) is 5-15x faster but
-approximate: it picks a different set (56-73 % overlap with exact FPS in our tests) and is NOT
-permutation-equivariant.
+holds for clouds in general position.
 """
 
 from __future__ import annotations
@@ -55,7 +52,7 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from typing import Any, Literal
+from typing import Any
 
 import fpsample
 import numpy as np
@@ -63,11 +60,6 @@ import torch
 
 from icpbench.core.errors import InputError
 from icpbench.core.types import validate_cloud
-
-FPSMethod = Literal["exact", "bucket"]
-
-#: KD-tree height of the bucket sampler (bucket size 2**h); fastest of h in {3, 5, 7} at N=10,000.
-_BUCKET_HEIGHT = 5
 
 
 @dataclass(frozen=True)
@@ -81,7 +73,6 @@ class GeometryConfig:
         k: neighbours per set-abstraction group (K = 32).
         k_interp: neighbours of the inverse-distance interpolation (3).
         idw_power: exponent p of the interpolation weights ``d^-p`` (2: PointNet++; 1: 1/d).
-        fps: ``"exact"`` (vanilla FPS, permutation-equivariant) or ``"bucket"`` (approximate).
     """
 
     a: float = 2.0
@@ -90,7 +81,6 @@ class GeometryConfig:
     k: int = 32
     k_interp: int = 3
     idw_power: float = 2.0
-    fps: FPSMethod = "exact"
 
     def __post_init__(self) -> None:
         for name in ("a", "b", "c", "idw_power"):
@@ -107,8 +97,6 @@ class GeometryConfig:
                 raise InputError(f"{name} must be a positive integer, got {v!r}")
         if self.idw_power <= 0:
             raise InputError(f"idw_power must be > 0, got {self.idw_power}")
-        if self.fps not in ("exact", "bucket"):
-            raise InputError(f"fps must be 'exact' or 'bucket', got {self.fps!r}")
 
     def level_sizes(self, n_points: int) -> tuple[int, int, int, int]:
         """Point counts (N, n2, n3, n4) of the four levels for a scan of ``n_points``."""
@@ -222,15 +210,11 @@ def fps_start_index(points: np.ndarray) -> int:
     return int(cand[np.lexsort((p[:, 2], p[:, 1], p[:, 0]))[-1]])
 
 
-def farthest_point_indices(points: np.ndarray, n_samples: int, method: FPSMethod = "exact") -> np.ndarray:
-    """``n_samples`` FPS indices (int64) into ``points`` (N, 3), in selection order, starting from
-    :func:`fps_start_index`. ``fpsample`` computes in float32."""
-    start = fps_start_index(points)
-    if method == "exact":
-        idx = fpsample.fps_sampling(points, n_samples, start_idx=start)
-    else:
-        idx = fpsample.bucket_fps_kdline_sampling(
-            points, n_samples, min(_BUCKET_HEIGHT, int(math.log2(points.shape[0]))), start_idx=start)
+def farthest_point_indices(points: np.ndarray, n_samples: int) -> np.ndarray:
+    """``n_samples`` vanilla FPS indices (int64) into ``points`` (N, 3), in selection order,
+    starting from :func:`fps_start_index` (``fpsample``, float32): the reference that
+    :func:`nested_fps_levels` reproduces."""
+    idx = fpsample.fps_sampling(points, n_samples, start_idx=fps_start_index(points))
     return np.asarray(idx, dtype=np.int64)
 
 
@@ -298,8 +282,7 @@ def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig |
             f"a scan of {N} points gives levels of ({N}, {n2}, {n3}, {n4}) points with a, b, c = "
             f"{cfg.a}, {cfg.b}, {cfg.c}; K = {cfg.k} needs n3 >= K and k_interp = {cfg.k_interp} "
             f"needs n4 >= k_interp: use at least {cfg.min_points()} points or smaller a, b, c, K")
-    fps = (nested_fps_levels(x, (n2, n3, n4)) if cfg.fps == "exact"
-           else farthest_point_indices(x, n2, cfg.fps))
+    fps = nested_fps_levels(x, (n2, n3, n4))
     lvl = [x, x[fps], x[fps[:n3]], x[fps[:n4]]]
     import small_gicp  # on first use, as in icpbench.core.mapindex
 

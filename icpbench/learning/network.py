@@ -41,8 +41,7 @@ Design choices (the paper does not state them; see also docs/methods.md, "Genera
   statistics are unreliable with B = 1-8 heterogeneous lidar scans; GroupNorm normalises each
   sample on its own (statistics over channels-in-group x points x neighbours), is identical in
   train and eval, and keeps relative magnitudes across points (a per-point LayerNorm would erase
-  the neighbour-distance scale of the first layer). ``"batch"`` (yanx27's choice) and ``"none"``
-  (LG-GAN's released setting) are available.
+  the neighbour-distance scale of the first layer).
 * **Input scaling**: coordinates are divided by ``scale_m`` inside the network (1 for objects
   normalised to the unit circle, 20 m for lidar) and the offset is multiplied by
   ``offset_scale_m`` (the expected displacement size: 0.1 for objects, 1 m for lidar), so one
@@ -51,15 +50,6 @@ Design choices (the paper does not state them; see also docs/methods.md, "Genera
   constant channel to the input of each of the four head convolutions (LG-GAN injects its label at
   several head layers), so one model can serve lambda = 1..5 m. The encoder stays budget-free: F1..F4
   can be computed once and decoded for several budgets (:meth:`Generator.encode`/``decode``).
-* **Global feature** (``global_feature=True``, beyond the paper and LG-GAN): the max over all F4
-  columns (a 512-d descriptor of the whole scan, as PointNet's global feature, Qi et al. CVPR 2017)
-  goes through a linear map to 256 channels that is added to the first head convolution's output
-  of every point. The head otherwise sees only features of neighbourhoods up to F4's reach, so
-  points far apart cannot agree on one displacement direction; on lidar-sim the generator lost to
-  the uniform/normal baselines at lambda = 4-5 m on corridor-like scans and on scans where its
-  partly incoherent field let ICP fall back into the true basin. The map is zero-initialised, so
-  :func:`add_global_feature` turns a trained model into one with the feature and the same output.
-
 Two exact rewrites save time without changing the function: the first convolution of an SA level
 is applied per source point before gathering (``W [p_j - p_c; f_j] + b = (W_p p_j + W_f f_j + b) -
 W_p p_c``), and each FP 1x1 convolution is applied before interpolating (the weights of a scan
@@ -83,14 +73,8 @@ from icpbench.learning import blas, fast
 from icpbench.learning.geometry import Geometry, GeometryConfig, compute_geometry_batch
 from icpbench.learning.prior import PRIOR_CHANNELS
 
-Norm = Literal["group", "batch", "none"]
-Output = Literal["residual", "absolute", "bounded", "sphere", "ball"]
+Output = Literal["residual", "absolute", "bounded", "ball"]
 Prior = Literal["none", "sector", "sector-iter"]
-
-#: Softening of the ``"sphere"`` output's normalisation (dimensionless, in units of the head's
-#: output): ``u = h / sqrt(|h|^2 + eps^2)``, so 1 - |u| < 5e-5 once |h| > 0.1 and the gradient
-#: stays finite at h = 0.
-SPHERE_EPS = 1e-3
 
 #: Shared-MLP widths of the four SA levels and of the head (paper Fig. 2 / LG-GAN).
 SA_WIDTHS: tuple[tuple[int, ...], ...] = ((32, 32, 64), (64, 64, 128), (128, 128, 256), (256, 256, 512))
@@ -103,18 +87,15 @@ class GeneratorConfig:
     """Hyper-parameters of :class:`Generator` (JSON-serialisable; stored beside checkpoints).
 
     Attributes:
-        a, b, c, k, k_interp, idw_power, fps: index precompute, see
+        a, b, c, k, k_interp, idw_power: index precompute, see
             :class:`~icpbench.learning.geometry.GeometryConfig`.
         scale_m: coordinates are divided by this inside the network (metres; 1 for unit objects).
         offset_scale_m: residual output unit (metres): ``X_adv = X + offset_scale_m * h``.
         output: ``"residual"`` (zero-initialised offset), ``"absolute"`` (paper/LG-GAN) or
             ``"bounded"`` (``X + lambda * u``, ``|u| < 1``; needs the budget at run time).
-        norm: ``"group"``, ``"batch"`` or ``"none"`` after SA and FP convolutions.
-        norm_groups: GroupNorm groups (must divide 32).
+        norm_groups: groups of the GroupNorm after SA and FP convolutions (must divide 32).
         conditioned: take a per-sample budget lambda (metres) as an extra head input channel.
         budget_scale_m: the budget channel is ``lambda / budget_scale_m``.
-        global_feature: add a zero-initialised linear map of the scan's max-pooled F4 descriptor
-            to the first head layer (see the module docstring).
         prior: ``"sector"``: the model also takes the analytic per-point channels of
             :mod:`icpbench.learning.prior` (B, N, 8) as input features of the first SA level and
             of the head, and adds ``prior_gain`` times the sector attack's direction to its output
@@ -124,15 +105,8 @@ class GeneratorConfig:
             for unit-scale objects).
             ``prior="sector-iter"`` (beyond the paper): the direction channels come from the
             iterated analytic attack instead (:func:`icpbench.learning.prior.iterated_prior_batch`,
-            per budget; the model then needs the surrogate ICP at run time).
-        prior_iterations, prior_step: iterations and step (fraction of lambda) of that attack.
-        prior_icp_iterations: iteration cap of the surrogate ICP that attack runs to find where
-            each iterate lands (25, the training surrogate's cap; the lidar evaluation ICP's cap
-            is 100).
-        prior_icp_stride: those surrogate ICPs register every ``prior_icp_stride``-th scan point
-            (1: all; :class:`~icpbench.attacks.sector_iter.SectorIterAttack` ``icp_stride``).
-        prior_icp_nn_reuse: those surrogate ICPs' approximate correspondence search, metres
-            (``ICPConfig.nn_reuse_m``; ``SectorIterAttack`` ``icp_nn_reuse``); 0: exact.
+            per budget; the model then needs the surrogate ICP at run time, and the attack's
+            settings are the generator attack's ``sector_iter``, not the model's).
     """
 
     a: float = 2.0
@@ -141,23 +115,15 @@ class GeneratorConfig:
     k: int = 32
     k_interp: int = 3
     idw_power: float = 2.0
-    fps: Literal["exact", "bucket"] = "exact"
     scale_m: float = 1.0
     offset_scale_m: float = 0.1
     output: Output = "residual"
-    norm: Norm = "group"
     norm_groups: int = 8
     conditioned: bool = False
     budget_scale_m: float = 1.0
-    global_feature: bool = False
     prior: Prior = "none"
     prior_gain: float = 2.0
     prior_dmax: float = 5.0
-    prior_iterations: int = 8
-    prior_step: float = 0.5
-    prior_icp_iterations: int = 25
-    prior_icp_stride: int = 1
-    prior_icp_nn_reuse: float = 0.0
 
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(GeneratorConfig)
@@ -179,28 +145,18 @@ class GeneratorConfig:
         for name in ("scale_m", "offset_scale_m", "budget_scale_m", "prior_dmax"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise InputError(f"{name} must be a finite number > 0, got {getattr(self, name)}")
-        if self.prior_iterations < 0 or not 0 < self.prior_step <= 2:
-            raise InputError(f"prior_iterations must be >= 0 and prior_step in (0, 2], got "
-                             f"{self.prior_iterations} and {self.prior_step}")
-        if self.prior_icp_iterations < 1:
-            raise InputError(f"prior_icp_iterations must be >= 1, got {self.prior_icp_iterations}")
-        if self.prior_icp_stride < 1:
-            raise InputError(f"prior_icp_stride must be >= 1, got {self.prior_icp_stride}")
-        if not (math.isfinite(self.prior_icp_nn_reuse) and self.prior_icp_nn_reuse >= 0):
-            raise InputError(f"prior_icp_nn_reuse must be a finite number >= 0 (metres), got "
-                             f"{self.prior_icp_nn_reuse}")
-        if self.prior != "none" and self.output not in ("bounded", "sphere", "ball"):
-            raise InputError(f"prior={self.prior!r} needs output='bounded', 'sphere' or 'ball', got "
+        if self.prior != "none" and self.output not in ("bounded", "ball"):
+            raise InputError(f"prior={self.prior!r} needs output='bounded' or 'ball', got "
                              f"{self.output!r}")
         if self.norm_groups < 1 or any(w % self.norm_groups for w in (32, FP_WIDTH)):
             raise InputError(f"norm_groups must divide 32, got {self.norm_groups}")
-        _ = self.geometry  # validates a, b, c, k, k_interp, idw_power, fps
+        _ = self.geometry  # validates a, b, c, k, k_interp, idw_power
 
     @property
     def geometry(self) -> GeometryConfig:
         """The index-precompute parameters."""
         return GeometryConfig(a=self.a, b=self.b, c=self.c, k=self.k, k_interp=self.k_interp,
-                              idw_power=self.idw_power, fps=self.fps)
+                              idw_power=self.idw_power)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -213,7 +169,9 @@ class GeneratorConfig:
         """Strict inverse of :meth:`to_dict`: every field must be present, no unknown keys.
 
         Fields added after checkpoints were first shipped (``_ADDED_LATER``) take their old
-        behaviour when absent, so older checkpoint JSONs still load.
+        behaviour when absent, and fields since removed (``_REMOVED``) are dropped when they hold
+        the one behaviour that remains (or were run-time settings of the prior's attack, which the
+        generator attack now owns), so older checkpoint JSONs still load.
 
         Raises:
             InputError: not a dict, missing or unknown keys, or invalid values.
@@ -222,6 +180,12 @@ class GeneratorConfig:
             raise InputError(f"generator config must be a JSON object, got {type(data).__name__}")
         names = [f.name for f in fields(cls)]
         data = {**{k: v for k, v in _ADDED_LATER.items() if k not in data}, **data}
+        for k, kept in _REMOVED.items():
+            if k in data:
+                if kept is not _ANY and data[k] != kept:
+                    raise InputError(f"generator config {k}={data[k]!r} is no longer supported "
+                                     f"(only {kept!r})")
+                del data[k]
         missing = [n for n in names if n not in data]
         unknown = sorted(set(data) - set(names))
         if missing:
@@ -236,10 +200,13 @@ class GeneratorConfig:
 
 #: Config fields introduced after the first shipped checkpoints, with the value that reproduces
 #: the behaviour of configs written before them.
-_ADDED_LATER: dict[str, Any] = {"global_feature": False, "prior": "none", "prior_gain": 2.0,
-                                  "prior_dmax": 5.0, "prior_iterations": 8, "prior_step": 0.5,
-                                  "prior_icp_iterations": 25, "prior_icp_stride": 1,
-                                  "prior_icp_nn_reuse": 0.0}
+_ADDED_LATER: dict[str, Any] = {"prior": "none", "prior_gain": 2.0, "prior_dmax": 5.0}
+_ANY = object()
+#: Config fields removed, with the one value that remains supported (``_ANY``: run-time settings
+#: of the prior's iterated attack, now the generator attack's ``sector_iter``; ignored).
+_REMOVED: dict[str, Any] = {"global_feature": False, "norm": "group", "fps": "exact",
+                            **{k: _ANY for k in ("prior_iterations", "prior_step", "prior_icp_iterations",
+                                                 "prior_icp_stride", "prior_icp_nn_reuse")}}
 
 
 #: Paper settings: objects (ShapeNet, N = 2,048, unit circle) and lidar (Boreas-like, N = 10,000).
@@ -247,25 +214,6 @@ PRESETS: dict[str, GeneratorConfig] = {
     "objects": GeneratorConfig(a=2, b=4, c=8, scale_m=1.0, offset_scale_m=0.1, budget_scale_m=0.1),
     "lidar": GeneratorConfig(a=3, b=12, c=48, scale_m=20.0, offset_scale_m=1.0, budget_scale_m=5.0),
 }
-
-
-def add_global_feature(model: Generator) -> Generator:
-    """A copy of ``model`` with ``global_feature=True`` and the same output (the new map is zero).
-
-    For fine-tuning a trained model with the scan descriptor (see the module docstring); the copy
-    is on the same device and in the same train/eval mode.
-
-    Raises:
-        InputError: the model already has the global feature.
-    """
-    if model.config.global_feature:
-        raise InputError("this generator already has the global feature")
-    p = next(model.parameters())
-    wide = Generator(model.config.with_(global_feature=True)).to(device=p.device, dtype=p.dtype)
-    missing, unexpected = wide.load_state_dict(model.state_dict(), strict=False)
-    assert not unexpected and all(k.startswith("glob.") for k in missing), (missing, unexpected)
-    wide.chunk_size = model.chunk_size
-    return wide.train(model.training)
 
 
 def add_prior(model: Generator, kind: str = "sector", gain: float = 2.0,
@@ -314,12 +262,8 @@ def generator_config(preset: str | GeneratorConfig = "lidar", **overrides: Any) 
     return base.with_(**overrides) if overrides else base
 
 
-def _norm(kind: Norm, channels: int, groups: int, dims: int) -> nn.Module:
-    if kind == "group":
-        return nn.GroupNorm(groups, channels)
-    if kind == "batch":
-        return nn.BatchNorm2d(channels) if dims == 2 else nn.BatchNorm1d(channels)
-    return nn.Identity()
+def _norm(channels: int, groups: int) -> nn.Module:
+    return nn.GroupNorm(groups, channels)
 
 
 def gather(feat: Tensor, idx: Tensor) -> Tensor:
@@ -355,10 +299,10 @@ def pointwise(conv: nn.Conv1d | nn.Conv2d, x: Tensor) -> Tensor:
 class SetAbstraction(nn.Module):
     """One SA level: shared MLP on grouped [relative xyz, features], max over the K neighbours."""
 
-    def __init__(self, in_features: int, widths: tuple[int, ...], norm: Norm, groups: int) -> None:
+    def __init__(self, in_features: int, widths: tuple[int, ...], groups: int) -> None:
         super().__init__()
         self.first = nn.Conv1d(3 + in_features, widths[0], 1)
-        self.norms = nn.ModuleList([_norm(norm, w, groups, 2) for w in widths])
+        self.norms = nn.ModuleList([_norm(w, groups) for w in widths])
         self.convs = nn.ModuleList([nn.Conv2d(i, o, 1) for i, o in zip(widths[:-1], widths[1:], strict=True)])
 
     def forward(self, xyz: Tensor, feat: Tensor | None, centers: Tensor, group: Tensor) -> Tensor:
@@ -388,34 +332,27 @@ class Generator(nn.Module):
     def __init__(self, config: GeneratorConfig | None = None) -> None:
         super().__init__()
         self.config = cfg = config or GeneratorConfig()
-        g, nk = cfg.norm_groups, cfg.norm
+        g = cfg.norm_groups
         n_prior = PRIOR_CHANNELS if cfg.prior != "none" else 0
         in_feats = (n_prior, *(w[-1] for w in SA_WIDTHS[:-1]))
-        self.sa = nn.ModuleList([SetAbstraction(i, w, nk, g)
+        self.sa = nn.ModuleList([SetAbstraction(i, w, g)
                                  for i, w in zip(in_feats, SA_WIDTHS, strict=True)])
         self.fp = nn.ModuleList([nn.Conv1d(w[-1], FP_WIDTH, 1) for w in SA_WIDTHS[1:]])
-        self.fp_norms = nn.ModuleList([_norm(nk, FP_WIDTH, g, 1) for _ in SA_WIDTHS[1:]])
+        self.fp_norms = nn.ModuleList([_norm(FP_WIDTH, g) for _ in SA_WIDTHS[1:]])
         extra = 1 if cfg.conditioned else 0
         dims = (FP_WIDTH * 3 + SA_WIDTHS[0][-1] + 3 + n_prior, *HEAD_WIDTHS, 3)
         self.head = nn.ModuleList([nn.Conv1d(i + extra, o, 1)
                                    for i, o in zip(dims[:-1], dims[1:], strict=True)])
-        if cfg.output in ("residual", "bounded", "sphere", "ball"):
+        if cfg.output in ("residual", "bounded", "ball"):
             nn.init.zeros_(self.head[-1].weight)
             nn.init.zeros_(self.head[-1].bias)
-        #: scan descriptor (B, 512) -> (B, 256) added to the first head layer (global_feature only)
-        self.glob: nn.Linear | None = None
-        if cfg.global_feature:
-            self.glob = nn.Linear(SA_WIDTHS[-1][-1], HEAD_WIDTHS[0])
-            nn.init.zeros_(self.glob.weight)
-            nn.init.zeros_(self.glob.bias)
         #: learnable gain of the prior direction in the output (prior models only)
         self.prior_gain: nn.Parameter | None = None
         if cfg.prior != "none":
             self.prior_gain = nn.Parameter(torch.tensor(float(cfg.prior_gain)))
         #: Samples per chunk in :meth:`forward` (None: 1 on CPU, where per-sample passes keep the
         #: working set in cache and were 1.6x faster for B=8, N=2,048 forward+backward; the whole
-        #: batch on GPU). Not part of the config: it never changes the result (except "batch" norm,
-        #: which is never chunked).
+        #: batch on GPU). Not part of the config: it never changes the result.
         self.chunk_size: int | None = None
 
     # -- inputs -------------------------------------------------------------------------------
@@ -440,7 +377,7 @@ class Generator(nn.Module):
     @property
     def needs_budget(self) -> bool:
         """Whether :meth:`forward` takes the budget (conditioned or bounded models)."""
-        return self.config.conditioned or self.config.output in ("bounded", "sphere", "ball")
+        return self.config.conditioned or self.config.output in ("bounded", "ball")
 
     def _check_budget(self, budget: Tensor | None, B: int) -> None:
         if self.needs_budget:
@@ -526,8 +463,6 @@ class Generator(nn.Module):
             if trace is not None:
                 trace[f"head{i}"] = h
             h = pointwise(conv, h if cond is None else torch.cat([h, cond], 1))
-            if i == 0 and self.glob is not None:
-                h = h + self.glob(feats[3].amax(-1))[:, :, None]  # (B, 256, 1): same for all points
             if i < len(self.head) - 1:
                 h = F.relu(h, inplace=True)
         return self._output(x, h.transpose(1, 2), budget, prior)
@@ -553,13 +488,6 @@ class Generator(nn.Module):
             r = torch.sqrt((out * out).sum(-1, keepdim=True) + 1e-12)
             lam = budget.to(device=out.device, dtype=out.dtype)[:, None, None]
             return x + (lam * (out / torch.clamp(r, min=1.0))).to(x.dtype)
-        if self.config.output == "sphere":
-            assert budget is not None
-            # |u| = 1 up to SPHERE_EPS: every point spends the whole budget, only directions are
-            # learned (a zero output, e.g. an unassociated point of an untrained prior model, stays)
-            r = torch.sqrt((out * out).sum(-1, keepdim=True) + SPHERE_EPS**2)
-            lam = budget.to(device=out.device, dtype=out.dtype)[:, None, None]
-            return x + (lam * (out / r)).to(x.dtype)
         return (self.config.scale_m * out).to(x.dtype)
 
     def forward(self, x: Tensor, geo: Geometry, budget: Tensor | None = None,
@@ -570,7 +498,7 @@ class Generator(nn.Module):
         scans (B, N, 3).
 
         The batch is run in chunks of :attr:`chunk_size` samples inside one autograd graph; with
-        per-sample normalisation (``group``/``none``) this gives the same result as one pass."""
+        per-sample normalisation (GroupNorm) this gives the same result as one pass."""
         self._check_inputs(x, geo)
         B = x.shape[0]
         self._check_budget(budget, B)
@@ -589,8 +517,6 @@ class Generator(nn.Module):
         return torch.cat(outs)
 
     def _chunk(self, x: Tensor) -> int:
-        if self.config.norm == "batch":  # batch statistics: chunking would change the result
-            return x.shape[0]
         if self.chunk_size is not None:
             return max(1, int(self.chunk_size))
         return 1 if x.device.type == "cpu" else x.shape[0]

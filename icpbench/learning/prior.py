@@ -3,7 +3,7 @@
 Beyond the paper (docs/methods.md, "Sensitivity prior"): the PointNet++ generator sees only point
 coordinates, so it must discover from data which points constrain which pose direction. The
 linearised point-to-plane step of the sector baseline (Laconte, Lisus & Barfoot, RA-L 2024,
-arXiv 2309.04251; :mod:`icpbench.analysis.sector_math`) gives exactly that in closed form at the cost of one
+arXiv 2309.04251; :mod:`icpbench.core.sector_math`) gives exactly that in closed form at the cost of one
 nearest-neighbour query and a 6x6 solve. With ``GeneratorConfig.prior = "sector"`` the generator
 receives, for every scan point (sensor frame):
 
@@ -21,8 +21,8 @@ The attacker is thus assumed to know the map and the true pose, the same knowled
 baseline and the PGD oracle use. The channels do not depend on the budget.
 
 ``GeneratorConfig.prior = "sector-iter"`` (beyond the paper) replaces channels 0:3 by the
-displacement of the iterated analytic attack (:mod:`icpbench.attacks.sector_iter`) divided by the
-budget (|.| <= 1): the sector step re-linearised where the surrogate ICP lands, which depends on
+displacement of the iterated analytic attack (:mod:`icpbench.core.iterated_sector`) divided by
+the budget (|.| <= 1): the sector step re-linearised where the surrogate ICP lands, which depends on
 lambda and on the initial guess, so these channels are computed per budget
 (:func:`iterated_prior_batch`); channels 3:8 stay the one-step ones above.
 """
@@ -34,8 +34,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from icpbench.analysis import sector_math as sector
+from icpbench.core import sector_math as sector
 from icpbench.core.errors import InputError
+from icpbench.core.iterated_sector import SectorIterSettings, iterated_sector
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -98,47 +99,39 @@ def sector_prior_batch(scans: torch.Tensor, T_gt: torch.Tensor, maps: list[MapIn
 
 
 def iterated_prior_batch(batch: Batch, budget_m: torch.Tensor, icp: Target, d_max: float = PRIOR_DMAX_M,
-                         iterations: int = 8, step_size: float = 0.5,
-                         icp_iterations: int = 25, icp_stride: int = 1,
-                         icp_nn_reuse: float = 0.0) -> torch.Tensor:
+                         settings: SectorIterSettings | None = None) -> torch.Tensor:
     """Prior channels (B, N, 8) float32 of ``prior="sector-iter"`` models (module docstring).
 
     Args:
         batch: clean scans (B, N, 3) (sensor frame) with their maps, true poses and initial guesses.
         budget_m: (B,) budget of each sample (metres).
         icp: the surrogate ICP that locates the attacked pose (forward only).
-        d_max: association gate (metres).
-        iterations, step_size, icp_iterations, icp_stride, icp_nn_reuse: of
-            :class:`~icpbench.attacks.sector_iter.SectorIterAttack` (``icp_iterations``: the cap
-            of the surrogate ICP it runs on each iterate; ``icp_stride``: that ICP registers every
-            ``icp_stride``-th point; ``icp_nn_reuse``: its approximate correspondences, metres).
+        d_max: association gate (metres) of the one-step channels 3:8.
+        settings: of the iterated analytic attack (default: its defaults, the ``sector-iter``
+            attack's); a batch with one budget takes the result from ``batch.memo`` when the
+            ``sector-iter`` attack computed it already.
     """
-    from icpbench.attacks.sector_iter import SectorIterAttack
-
     lam = torch.as_tensor(budget_m, dtype=torch.float64).reshape(-1)
     if lam.shape != (len(batch),) or not bool(torch.all(lam > 0)):
         raise InputError(f"need one budget > 0 per sample, got {tuple(lam.shape)} for {len(batch)}")
     out = sector_prior_batch(batch.scans, batch.T_gt, batch.maps, d_max)
-    attack = SectorIterAttack(iterations=iterations, step_size=step_size, d_max=d_max,
-                              icp_iterations=icp_iterations, icp_stride=icp_stride,
-                              icp_nn_reuse=icp_nn_reuse)
     for value in torch.unique(lam).tolist():
         idx = torch.nonzero(lam == value)[:, 0]
         sub = batch if idx.numel() == len(batch) else Batch.from_samples(
             [batch.samples[i] for i in idx.tolist()], dtype=batch.scans.dtype,
             maps=[batch.maps[i] for i in idx.tolist()])
-        adv = attack.run(sub, value, surrogate=icp, generator=0).scans
-        out[idx, :, 0:3] = ((adv.to(torch.float64) - sub.scans.to(torch.float64)) / value
-                            ).to(torch.float32)
+        adv = torch.as_tensor(iterated_sector(sub, value, icp, settings).scans)
+        out[idx, :, 0:3] = ((adv - sub.scans.to(torch.float64)) / value).to(torch.float32)
     return out
 
 
 def prior_channels(config: Any, batch: Batch, budget_m: torch.Tensor | None,
-                   icp: Target | None = None) -> torch.Tensor | None:
+                   icp: Target | None = None,
+                   settings: SectorIterSettings | None = None) -> torch.Tensor | None:
     """The prior channels (B, N, 8) a generator with ``config`` (a
     :class:`~icpbench.learning.network.GeneratorConfig`) takes for ``batch``, or None
-    (``prior="none"``). ``budget_m`` (B,) metres and the surrogate ``icp`` are needed by
-    ``prior="sector-iter"`` only.
+    (``prior="none"``). ``budget_m`` (B,) metres, the surrogate ``icp`` and the iterated attack's
+    ``settings`` (default: its defaults) are used by ``prior="sector-iter"`` only.
 
     Raises:
         InputError: ``sector-iter`` without a budget or a surrogate.
@@ -149,6 +142,4 @@ def prior_channels(config: Any, batch: Batch, budget_m: torch.Tensor | None,
         return sector_prior_batch(batch.scans, batch.T_gt, batch.maps, config.prior_dmax)
     if budget_m is None or icp is None:
         raise InputError("a generator with prior='sector-iter' needs the budget and a surrogate ICP")
-    return iterated_prior_batch(batch, budget_m, icp, config.prior_dmax, config.prior_iterations,
-                                config.prior_step, config.prior_icp_iterations,
-                                config.prior_icp_stride, config.prior_icp_nn_reuse)
+    return iterated_prior_batch(batch, budget_m, icp, config.prior_dmax, settings)

@@ -30,15 +30,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from icpbench.attacks.base import project_to_ball
 from icpbench.core import registry
 from icpbench.core.errors import CheckpointError, InputError
+from icpbench.core.iterated_sector import SectorIterSettings
+from icpbench.core.projection import project_to_ball
 from icpbench.core.se3 import pose_error, pose_error_components
 from icpbench.core.types import Batch
-from icpbench.harness.progress import RunProgress, progress_bar
+from icpbench.harness.progress import progress_bar
 from icpbench.harness.results import write_json_atomic
 from icpbench.learning import distributed as ddp
-from icpbench.learning.losses import adversarial_loss, imitation_loss, reconstruction_loss, weights
+from icpbench.learning.losses import adversarial_loss, reconstruction_loss, weights
 from icpbench.learning.prior import prior_channels, sector_prior
 from icpbench.targets.p2plane import PointToPlaneICP
 
@@ -65,21 +66,17 @@ class TrainConfig:
         strict: beyond the paper: project every point's displacement onto its lambda-ball inside
             the training loop (differentiably), so the model learns attacks that respect the budget
             exactly; the generator attack then applies the same projection (recorded in the card).
+        sector_iter: for ``prior="sector-iter"`` models: settings of the iterated analytic attack
+            that makes the prior channels during training
+            (:class:`~icpbench.core.iterated_sector.SectorIterSettings` field names; missing ones
+            keep their defaults). Recorded in the model card; at run time the generator attack's
+            own ``sector_iter`` applies.
         init_checkpoint: start from these weights (fine-tuning; the generator settings are taken
             from its JSON, ``generator_preset``/``generator_overrides`` are then ignored, except
-            ``global_feature=True``, which adds the zero-initialised scan descriptor to a model
-            trained without it, see :func:`~icpbench.learning.network.add_global_feature`).
+            ``prior``, which adds the prior's zero-initialised inputs to a model trained without
+            them, see :func:`~icpbench.learning.network.add_prior`).
         adv_per_budget: divide each sample's adversarial loss by its lambda, so that with several
             budgets the large ones (whose errors are larger) do not dominate the gradient.
-        imitation: beyond the paper: weight of the imitation loss (learning from the oracle,
-            :func:`~icpbench.learning.losses.imitation_loss`) towards cached PGD answers
-            (:mod:`icpbench.learning.oracle_cache`); 0 = the paper's losses only. With it, each
-            training scan keeps one budget (:func:`~icpbench.learning.oracle_cache.assigned_budget`)
-            instead of a random one per epoch; ``alpha = 0`` then trains on imitation alone
-            (no ICP in the training step).
-        oracle: settings of the cached oracle (:class:`~icpbench.learning.oracle_cache.OracleSpec`
-            fields, e.g. ``{"steps": 10, "init": "sector"}``).
-        oracle_cache: folder of the cache (None: ``<out>/oracle``); several runs may share one.
     """
 
     dataset: str = "lidar-sim"
@@ -108,9 +105,7 @@ class TrainConfig:
     strict: bool = False
     adv_per_budget: bool = False
     init_checkpoint: str | None = None
-    imitation: float = 0.0
-    oracle: dict[str, Any] = field(default_factory=dict)
-    oracle_cache: str | None = None
+    sector_iter: dict[str, Any] = field(default_factory=dict)
 
 
 #: Named presets: ``quick`` trains on 2 CPU cores within about an hour; ``paper`` uses the paper's
@@ -121,12 +116,15 @@ class TrainConfig:
 #: lambda = 1..5 m, per-budget balanced loss, no pretraining (the zero-initialised residual already
 #: reconstructs, and SoftShrink is 0 inside the ball), lr 1e-3 (the paper's 1e-4 barely moved the
 #: model in an epoch on CPU; measured), 5 epochs of 144 training scans (~25 min on one core; the
-#: loss plateaued after epoch 3-4). ``quick-lidar-soft`` is the same with the paper's soft bound
-#: (residual output, SoftShrink penalty only). ``paper-lidar`` has the paper's sizes and soft bound.
+#: loss plateaued after epoch 3-4). A ``prior="sector-iter"`` model trained with it sees the prior
+#: made through the 25-iteration training surrogate on exact correspondences (``sector_iter``).
+#: ``quick-lidar-soft`` is the same with the paper's soft bound (residual output, SoftShrink only).
+#: ``paper-lidar`` has the paper's sizes and soft bound.
 PRESETS: dict[str, TrainConfig] = {
     "quick-lidar": TrainConfig(generator_overrides={"output": "bounded"}, adv_per_budget=True,
                                lr=1e-3, pretrain_epochs=0, epochs=5, train_samples=144,
-                               eval_samples=16),
+                               eval_samples=16,
+                               sector_iter={"icp_iterations": 25, "icp_nn_reuse": 0.0}),
     "quick-lidar-soft": TrainConfig(lr=1e-3, train_samples=144, eval_samples=16),
     "paper-lidar": TrainConfig(train_samples=20_000, eval_samples=200, batch_size=6,
                                pretrain_epochs=3, epochs=10, budgets=[1.0], device="cuda"),
@@ -150,7 +148,7 @@ def train_config(preset: str = "quick-lidar", **overrides: Any) -> TrainConfig:
 
 def _load_split(cfg: TrainConfig, split: str, k: int, ctx: ddp.DistContext | None = None):
     cls = registry.datasets.get(cfg.dataset)
-    ds = cls(seed=0, split=split, **cfg.dataset_params)
+    ds = cls.create(seed=0, split=split, **cfg.dataset_params)
     if len(ds) == 0:
         raise InputError(f"dataset {cfg.dataset!r} has no {split!r} samples")
     if ctx is None or not ctx.enabled:
@@ -187,7 +185,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
 def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, progress: bool,
            log: Callable[[str], None] | None) -> dict[str, Any]:
     from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
-    from icpbench.learning.network import Generator, add_global_feature, add_prior, generator_config
+    from icpbench.learning.network import Generator, add_prior, generator_config
 
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "train_config.json"
@@ -208,8 +206,6 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     torch.manual_seed(cfg.seed)
     if cfg.init_checkpoint is not None:  # fine-tuning: the checkpoint's own config wins
         model = load_checkpoint(cfg.init_checkpoint, map_location=device).model.train()
-        if cfg.generator_overrides.get("global_feature") is True and not model.config.global_feature:
-            model = add_global_feature(model)
         if cfg.generator_overrides.get("prior", "none") != "none" and not model.needs_prior:
             model = add_prior(model, cfg.generator_overrides["prior"],
                               float(cfg.generator_overrides.get("prior_gain", 2.0)),
@@ -243,9 +239,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     priors = [_prior(model, s) for s in train_set]
     iter_priors: dict[tuple[int, float], torch.Tensor] = {}  # prior="sector-iter": per (scan, λ)
     prior_icp = PointToPlaneICP(cfg.icp_preset)  # forward only: the plain preset, as at run time
-    targets, fixed_lam = None, None
-    if cfg.imitation > 0:
-        targets, fixed_lam = _oracle_targets(cfg, out, train_set, progress, log)
+    prior_settings = SectorIterSettings.from_mapping(cfg.sector_iter, "training sector_iter")
     data_s = time.perf_counter() - t_data
     n_train = len({i for ids in ddp.all_gather([s.id for s in train_set], ctx) for i in ids})
     rng = np.random.default_rng(cfg.seed)
@@ -264,7 +258,7 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         order = rng.permutation(len(train_set))
         u = rng.random(len(train_set))
         model.train()
-        sums = {"loss": 0.0, "l_adv": 0.0, "l_rec": 0.0, "l_imit": 0.0, "err": 0.0, "n": 0}
+        sums = {"loss": 0.0, "l_adv": 0.0, "l_rec": 0.0, "err": 0.0, "n": 0}
         steps = range(0, len(order), cfg.batch_size)
         bar = progress_bar(total=len(steps), disable=not progress,
                            desc=f"epoch {epoch + 1}/{total_epochs} ({'pretrain' if pretrain else 'attack'})")
@@ -274,11 +268,9 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             x = batch.scans.to(torch.float32).to(device)
             geo = Geometry.stack([geos[i] for i in idx]).to(device)
             lam = budgets[np.minimum((u[idx] * budgets.numel()).astype(int), budgets.numel() - 1)]
-            if fixed_lam is not None:  # imitation: the budget the oracle answered at
-                lam = fixed_lam[torch.as_tensor(idx)]
             if model.config.prior == "sector-iter":  # depends on lambda: per (scan, λ)
                 prior = torch.cat([_iterated_prior(model, train_set[i], float(v), prior_icp,
-                                                   iter_priors, int(i))
+                                                   prior_settings, iter_priors, int(i))
                                    for i, v in zip(idx, lam.tolist(), strict=True)]).to(device)
             else:
                 prior = None if priors[0] is None else torch.cat([priors[i] for i in idx]).to(device)
@@ -298,11 +290,6 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             else:
                 l_adv, err = torch.zeros((), dtype=torch.float64), float("nan")
             loss = alpha * l_adv + beta * l_rec
-            l_imit = torch.zeros((), dtype=torch.float64)
-            if targets is not None and not pretrain:
-                d = torch.cat([targets[i] for i in idx]).to(device)
-                l_imit = imitation_loss(x.double(), x_adv.double(), d, lam.to(device)).mean()
-                loss = loss + cfg.imitation * l_imit
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -310,12 +297,10 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
             sums["loss"] += float(loss.detach())
             sums["l_adv"] += float(l_adv.detach())
             sums["l_rec"] += float(l_rec.detach())
-            sums["l_imit"] += float(l_imit.detach())
             sums["err"] += 0.0 if math.isnan(err) else err
             sums["n"] += 1
             bar.set_postfix(loss=f"{sums['loss'] / sums['n']:.4f}",
                             rec=f"{sums['l_rec'] / sums['n']:.4f}",
-                            imit=f"{sums['l_imit'] / sums['n']:.3f}",
                             err_xy=f"{sums['err'] / sums['n']:.3f}" if not pretrain else "-")
             bar.update(1)
         bar.close()
@@ -353,36 +338,6 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     return ddp.broadcast(card, ctx)
 
 
-def _oracle_targets(cfg: TrainConfig, out: Path, train_set: list[Any], progress: bool,
-                    log: Callable[[str], None] | None) -> tuple[list[torch.Tensor], torch.Tensor]:
-    """Cached oracle displacements (1, N, 3) float32 per training scan (computing the missing
-    ones first) and each scan's budget (len(train_set),) float64."""
-    from icpbench.learning.oracle_cache import OracleCache, OracleSpec, assigned_budget
-
-    try:
-        spec = OracleSpec(**cfg.oracle)
-    except TypeError as exc:
-        raise InputError(f"bad oracle settings {cfg.oracle}: {exc}") from exc
-    cache = OracleCache(cfg.oracle_cache or out / "oracle", spec)
-    lam = [assigned_budget(s.id, cfg.budgets) for s in train_set]
-    missing = sum(not cache.path(s.id, b).exists() for s, b in zip(train_set, lam, strict=True))
-    bar = RunProgress(len(train_set), done=len(train_set) - missing, desc="oracle answers",
-                      unit="scan", enabled=progress)
-    t, seen = time.perf_counter(), [0]
-
-    def tick(done: int, total: int) -> None:
-        bar.update(done - seen[0])
-        seen[0] = done
-
-    disp = cache.ensure(train_set, lam, PointToPlaneICP(cfg.icp_preset), progress=tick)
-    bar.close()
-    if log is not None:
-        log(f"oracle answers for {len(train_set)} scans ready in {cache.root} "
-            f"({time.perf_counter() - t:.0f} s)")
-    return ([torch.as_tensor(d)[None] for d in disp],
-            torch.as_tensor(lam, dtype=torch.float64))
-
-
 def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
     """Prior channels (1, N, 8) of one training sample for prior models (else None); computed
     once per scan, like the index precompute."""
@@ -396,13 +351,15 @@ def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
 
 
 def _iterated_prior(model: torch.nn.Module, sample: Any, budget_m: float, icp: Any,
-                    cache: dict[tuple[int, float], torch.Tensor], key: int) -> torch.Tensor:
+                    settings: SectorIterSettings, cache: dict[tuple[int, float], torch.Tensor],
+                    key: int) -> torch.Tensor:
     """Prior channels (1, N, 8) of ``prior="sector-iter"`` for one training scan at one budget
-    (metres), computed on first use with the training surrogate ``icp`` and kept in ``cache``."""
+    (metres), computed on first use with the training surrogate ``icp`` and the iterated attack's
+    ``settings``, and kept in ``cache``."""
     k = (key, budget_m)
     if k not in cache:
         cache[k] = prior_channels(model.config, Batch.from_samples([sample]),
-                                  torch.tensor([budget_m]), icp)
+                                  torch.tensor([budget_m]), icp, settings)
     return cache[k]
 
 
@@ -440,8 +397,8 @@ def _own_card(cfg: TrainConfig, epochs_done: int, wall_s: float, data_s: float,
         "strict_training": cfg.strict,
         "adv_per_budget": cfg.adv_per_budget,
         "init_checkpoint": cfg.init_checkpoint,
-        "imitation": ({"weight": cfg.imitation, "oracle": cfg.oracle}
-                      if cfg.imitation > 0 else None),
+        "sector_iter": (SectorIterSettings.from_mapping(cfg.sector_iter).as_dict()
+                        if cfg.sector_iter else None),
     }
 
 
@@ -462,7 +419,8 @@ def evaluate(cfg: TrainConfig, ckpt: Path, *, progress: bool = False) -> dict[st
             with torch.no_grad():
                 geo = lg.model.precompute(x)
                 prior = prior_channels(lg.model.config, batch, torch.full((len(batch),), float(lam)),
-                                       PointToPlaneICP(cfg.icp_preset))
+                                       PointToPlaneICP(cfg.icp_preset),
+                                       SectorIterSettings.from_mapping(cfg.sector_iter))
                 prior = None if prior is None else prior.to(cfg.device)
                 adv = lg.model(x.to(cfg.device), geo.to(cfg.device),
                                torch.full((len(batch),), float(lam)) if lg.model.needs_budget

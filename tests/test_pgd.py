@@ -1,5 +1,5 @@
-"""PGD cost control (attacks/pgd.py): step schedule, early stopping, implicit surrogate gradient,
-and the original oracle reachable by parameters."""
+"""The PGD oracle (attacks/pgd.py): the ascent equals a reference loop, its starts, the implicit
+surrogate gradient, approximate correspondences, and the ``pgd-warm`` preset."""
 
 from __future__ import annotations
 
@@ -23,31 +23,17 @@ def batch():
     return Batch.from_samples([scene_sample(600, 6_000, seed=s, noise_m=0.02) for s in range(2)])
 
 
-class _Counting(PointToPlaneICP):
-    """p2plane that counts how many scans it registered."""
-
-    calls: list[int] = []
-
-    def register(self, scans, maps, T_init):
-        _Counting.calls.append(int(scans.shape[0]))
-        return super().register(scans, maps, T_init)
-
-
-def test_step_sizes():
-    const = PGDAttack(steps=30, step_size=0.1).step_sizes(2.0)
-    assert const == [pytest.approx(0.2)] * 30
-    cos = PGDAttack(steps=11, step_size=0.5, schedule="cosine", final_step_size=0.02).step_sizes(2.0)
-    assert cos[0] == pytest.approx(1.0) and cos[-1] == pytest.approx(0.04)
-    assert cos[5] == pytest.approx(0.5 * (1.0 + 0.04))
-    assert all(a > b for a, b in zip(cos, cos[1:], strict=False))
-    for bad in ({"schedule": "linear"}, {"patience": 0}, {"final_step_size": 0.0},
-                {"backprop": "exact"}):
+def test_bad_settings_are_refused():
+    for bad in ({"steps": 0}, {"step_size": 0.0}, {"backprop": "exact"}, {"init": "gradient"},
+                {"init": "sector", "sector_iter": {"iterations": 2}},
+                {"init": "sector-iter", "sector_iter": {"icp_iters": 3}}):
         with pytest.raises(InputError):
             PGDAttack(**bad)
 
 
 def _old_pgd(batch, budget, icp, w, steps, alpha, gens):
-    """The oracle as it was before the schedule (30-step loop, full batch every step)."""
+    """A plain reference of the oracle: random start, ``steps`` normalised-gradient steps of
+    ``alpha`` metres, projection, best iterate (the clean scan included)."""
     clean = batch.scans.to(torch.float64)
 
     def obj(adv):
@@ -77,35 +63,13 @@ def _old_pgd(batch, budget, icp, w, steps, alpha, gens):
     return best.to(batch.scans.dtype)
 
 
-def test_constant_schedule_without_patience_is_the_original_oracle(batch):
+def test_pgd_is_the_reference_ascent(batch):
     sur = PointToPlaneICP("lidar")
-    atk = PGDAttack(steps=4, step_size=0.1, icp_iterations=10, schedule="constant", patience=None)
+    atk = PGDAttack(steps=4, step_size=0.1, icp_iterations=10)
     got = atk.run(batch, 1.0, surrogate=sur, generator=7).scans
     gens = SampleGenerators.for_batch(batch, 7, "pgd", 1.0)
     want = _old_pgd(batch, 1.0, atk._surrogate(sur), atk.w, 4, 0.1, gens)
     torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
-
-
-def test_patience_stops_scans_and_keeps_the_best(batch):
-    sur = _Counting("lidar")
-    _Counting.calls = []
-    full = PGDAttack(steps=12, step_size=0.5, schedule="cosine", icp_iterations=8)
-    out_full = full.run(batch, 1.0, surrogate=sur, generator=1)
-    n_full = sum(_Counting.calls)
-    _Counting.calls = []
-    early = PGDAttack(steps=12, step_size=0.5, schedule="cosine", icp_iterations=8, patience=1)
-    out = early.run(batch, 1.0, surrogate=sur, generator=1)
-    assert sum(_Counting.calls) < n_full  # fewer scans registered
-    assert min(_Counting.calls) >= 1 and 1 in _Counting.calls[1:]  # a stopped scan left the batch
-    assert float(out.stats["disp_max"].max()) <= 1.0 + 1e-9
-    tgt = PointToPlaneICP("lidar", max_iterations=8)
-    with torch.no_grad():
-        clean = weighted_pose_error(pose_error(
-            tgt.register(batch.scans, batch.maps, batch.T_init).T, batch.T_gt), early.w)
-        got = weighted_pose_error(pose_error(
-            tgt.register(out.scans, batch.maps, batch.T_init).T, batch.T_gt), early.w)
-    assert (got >= clean - 1e-9).all()  # the best iterate, never below the start
-    assert out_full.scans.shape == out.scans.shape
 
 
 def test_implicit_surrogate_gradient_is_used(batch):
@@ -140,8 +104,6 @@ def test_sector_warm_start_never_below_the_sector_attack(batch):
     again = PGDAttack(steps=3, init="sector", icp_iterations=25).run(
         batch, budget, surrogate=icp, generator=123)
     assert torch.allclose(out.scans, again.scans)
-    with pytest.raises(InputError):
-        PGDAttack(init="gradient")
 
 
 def test_icp_nn_reuse_reaches_the_surrogate(batch, reuse_radii):
@@ -154,28 +116,31 @@ def test_icp_nn_reuse_reaches_the_surrogate(batch, reuse_radii):
     out = atk.run(batch, 0.5, surrogate=PointToPlaneICP("lidar"), generator=0)
     assert reuse_radii and set(reuse_radii) == {0.05}
     assert float(out.stats["disp_max"].max()) <= 0.5 + 1e-9
-    assert atk.params["icp_nn_reuse"] == 0.05 and "icp_nn_reuse" not in PGDAttack().params
+    assert atk.params["icp_nn_reuse"] == 0.05 and PGDAttack().params["icp_nn_reuse"] == 0.0
     with pytest.raises(InputError, match="icp_nn_reuse"):
         PGDAttack(icp_nn_reuse=-0.1)
 
 
-def test_pgd_warm_is_pgd_with_the_cheaper_oracles_settings(batch):
-    """``pgd-warm`` is registered, equals ``pgd`` run with its settings (sector-iter start, 2
-    steps, 100-iteration surrogate with 5 cm reuse, implicit gradient), keeps the budget and
-    records its start; another start drops the default start settings."""
-    from icpbench.attacks.pgd_warm import WARM_START, WarmPGDAttack
+def test_pgd_warm_is_a_preset_of_pgd(batch):
+    """``pgd-warm`` is registered, has pgd's settings, equals ``pgd`` run with its preset
+    (sector-iter start, 2 steps, 100-iteration surrogate with 5 cm reuse, implicit gradient),
+    keeps the budget and records its start settings."""
+    from icpbench.attacks.pgd_warm import WarmPGDAttack
     from icpbench.core import registry
+    from icpbench.core.iterated_sector import SectorIterSettings
 
     assert registry.attacks.get("pgd-warm") is WarmPGDAttack
-    assert WarmPGDAttack().params["init_params"] == WARM_START
+    assert WarmPGDAttack.param_types() == PGDAttack.param_types()
+    default = WarmPGDAttack()
+    assert default.params["sector_iter"] == SectorIterSettings().as_dict()
+    assert default.steps == 2 and default.backprop == "implicit" and default.icp_nn_reuse == 0.05
     small = {"iterations": 1, "icp_iterations": 3}
-    warm = WarmPGDAttack(init_params=small, icp_iterations=3)
-    assert warm.steps == 2 and warm.backprop == "implicit" and warm.icp_nn_reuse == 0.05
-    plain = PGDAttack(steps=2, init="sector-iter", init_params=small, icp_iterations=3,
+    warm = WarmPGDAttack(sector_iter=small, icp_iterations=3)
+    plain = PGDAttack(steps=2, init="sector-iter", sector_iter=small, icp_iterations=3,
                       icp_nn_reuse=0.05, backprop="implicit")
     surrogate = PointToPlaneICP("lidar")
     out = warm.run(batch, 0.5, surrogate=surrogate, generator=0)
     ref = plain.run(batch, 0.5, surrogate=surrogate, generator=0)
     assert torch.equal(out.scans, ref.scans)
     assert float(out.stats["disp_max"].max()) <= 0.5 + 1e-9
-    assert "init_params" not in WarmPGDAttack(init="sector").params
+    assert WarmPGDAttack(init="sector").params["sector_iter"] is None

@@ -1,0 +1,24 @@
+"""Projection of per-point displacements onto their budget balls (the attacks' hard bound)."""
+
+from __future__ import annotations
+
+import torch
+
+from icpbench.core.errors import InputError
+
+
+def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,
+                    budget_m: float | torch.Tensor) -> torch.Tensor:
+    """Project each point's displacement ``adv - clean`` (B, N, 3) onto the Euclidean ball of radius
+    ``budget_m`` (metres): one float for every sample, or a (B,) tensor with one budget per sample.
+
+    Differentiable in ``adv`` (and in a tensor budget); the gradient is finite at zero displacement."""
+    d = adv - clean
+    norm = torch.linalg.vector_norm(d, dim=-1, keepdim=True)  # (B, N, 1)
+    if isinstance(budget_m, torch.Tensor):
+        if budget_m.dim() != 1 or budget_m.shape[0] != d.shape[0]:
+            raise InputError(f"per-sample budget must have shape ({d.shape[0]},), "
+                             f"got {tuple(budget_m.shape)}")
+        budget_m = budget_m.to(device=d.device, dtype=d.dtype)[:, None, None]
+    scale = torch.clamp(budget_m / torch.clamp(norm, min=1e-12), max=1.0)
+    return clean + d * scale
