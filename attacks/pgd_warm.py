@@ -2,9 +2,9 @@
 
 Beyond the paper. The projected gradient ascent of :mod:`icpbench.attacks.pgd` (Madry et al.,
 ICLR 2018) started from the iterated analytic attack (the one-step worst case of Laconte et al.,
-RA-L 2024, re-linearised where the surrogate lands; :mod:`icpbench.core.iterated_sector` with its
-default settings), then 2 steps of 0.1 lambda through the 100-iteration surrogate on 5 cm
-approximate correspondences with the implicit-function gradient. On 48 lidar-sim test scans it
+RA-L 2024, re-linearised 8 times where the 100-iteration surrogate lands, on 5 cm approximate
+correspondences; :mod:`icpbench.core.iterated_sector`), then 2 steps of 0.1 lambda through that
+surrogate with the implicit-function gradient. On 48 lidar-sim test scans it
 reached 1.05x / 1.25x the 30-step oracle's mean error at lambda = 1 / 4 m in a third / two thirds
 of its time (docs/performance.md, "The PGD oracle and its warm start").
 """
@@ -26,4 +26,5 @@ class WarmPGDAttack(PGDAttack):
         "(beyond the paper)"
     )
     preset: ClassVar[dict[str, Any]] = {"steps": 2, "icp_iterations": 100, "backprop": "implicit",
-                                        "init": "sector-iter", "icp_nn_reuse": 0.05}
+                                        "init": "sector-iter", "icp_nn_reuse": 0.05,
+                                        "sector_iter": {"iterations": 8, "icp_nn_reuse": 0.05}}

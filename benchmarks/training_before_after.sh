@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# Training throughput before and after issue 15, same recipe, same machine, same run.
+# Training throughput of another commit ("before") and of this tree, same recipe, same machine, same run.
 #
 # Usage: bash benchmarks/training_before_after.sh [BEFORE_COMMIT] [OUT_DIR]
-#   BEFORE_COMMIT  the tree at the start of issue 15 (default 593aaa7)
+#   BEFORE_COMMIT  the tree to compare with (default 593aaa7, before the training-speed work)
 #   OUT_DIR        where the training runs go (default a temporary directory)
 #
-# The recipe is the one shipped when the issue was filed: `icpbench train --preset quick-lidar`
+# The recipe is the one shipped at 593aaa7: `icpbench train --preset quick-lidar`
 # (no prior, bounded output, batch 2, 25 unrolled ICP iterations), shortened to SCANS training
 # scans (default 12) and one epoch, one torch thread per process. It runs four times, one after
 # the other: the before tree in one process and in two DDP processes (torchrun, gloo), then this

@@ -340,6 +340,9 @@ def danger_map(
     dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
     out: Annotated[str, typer.Option(help="Output directory (re-run to resume).")]
     = "runs/map",
+    executor: Annotated[str, typer.Option(
+        help="local (one process) or ray (one worker per core); results do not depend on it.")]
+    = "local",
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
@@ -353,7 +356,7 @@ def danger_map(
         out = out_dir = _out_dir(out)
         attacks = [attack] + ([compare] if compare else [])
         cfg = RunConfig(dataset=dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
-                        samples=samples, split=split,
+                        samples=samples, split=split, executor=executor,
                         attack_params=_nested(attack_param, "--attack-param"),
                         dataset_params=_flat(dataset_param, "--dataset-param"))
         run_grid(cfg, out / "run", progress=not quiet)

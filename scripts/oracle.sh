@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The PGD oracle against the shipped generator and the normal baseline on lidar-sim at λ = 1 m
-# (issue 7): per-scan projected gradient ascent through the differentiable p2plane ICP.
+# The PGD oracle against the shipped generator and the normal baseline on lidar-sim at λ = 1 m:
+# per-scan projected gradient ascent through the differentiable p2plane ICP.
 # Table with PGD as the reference ("% PGD is Larger"), its displacement audit (max ≤ λ) and the
 # attack time per scan of each attack (ratio PGD / generator). ~12 min on 2 cores for 48 scans.
 # CHECKPOINT=path/to/generator.pt runs another generator than the default lidar-sim one (e.g. the

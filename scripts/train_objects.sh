@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # How the shipped objects generators icpbench/checkpoints/objects/{generator,x-only,theta-only}.pt
-# were trained (issue 17), one process at a time, torch 1 thread, on 2 shared CPU cores.
+# were trained, one process at a time, torch 1 thread, on 2 shared CPU cores.
 # All three use the bounded output (X + λ·u, |u| < 1): every displacement is within λ by
 # construction, so strict evaluation changes nothing. Preset quick-objects (λ = 0.05, batch 8,
 # AdamW lr 1e-3, surrogate p2plane objects-train), no pretraining (it would only pull the output
@@ -8,7 +8,7 @@
 #   x-y (generator.pt) and x-only: with the sensitivity prior (prior=sector, association gate
 #     prior_dmax = 0.3, the objects ICP preset's d_max): the untrained model is the sector attack
 #     scaled by tanh(2), training learns corrections; x-y 3 epochs (463 s), x-only 2 epochs;
-#   x-y, session 6 (issue 17): the 3-epoch x-y model above fine-tuned 2 more epochs with the same
+#   x-y: the 3-epoch x-y model above fine-tuned 2 more epochs with the same
 #     adversarial loss on 256 training objects, lr 5e-4 (695 s; 1158 s in all, the card's
 #     train_wall_s_total; its init_card is the 3-epoch model's card). Validation (100 objects of
 #     the test split of dataset seed 1, not the demo's seed-0 objects; strict, λ = 0.05): mean
@@ -20,7 +20,7 @@
 #     the 3-epoch x-y model fine-tuned 2 epochs with --alpha 1 --imitation 0.1 0.0555, 48.6%.
 #     PGD's per-point normalised steps move every point, relevant or not, so most of what the
 #     imitation loss asks for is not predictable from the geometry.
-#   x-only and theta-only, session 6: the models below fine-tuned the same way (2 epochs, 256
+#   x-only and theta-only: the models below fine-tuned the same way (2 epochs, 256
 #     objects, lr 5e-4; 292 s and 306 s). Validation (same 100 seed-1 objects; means over
 #     converged runs): heading error theta-only 0.0507 -> 0.0550 rad against x-only 0.0389 ->
 #     0.0378 rad; x error x-only 0.0544 -> 0.0549 against theta-only 0.0333 -> 0.0320: the

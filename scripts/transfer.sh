@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Transfer table on lidar-sim at λ = 1 m (issue 7): attacks crafted on the differentiable p2plane
+# Transfer table on lidar-sim at λ = 1 m: attacks crafted on the differentiable p2plane
 # surrogate, evaluated on every target. ~10 min on 2 cores for 20 samples (PGD dominates).
 # CHECKPOINT=path/to/generator.pt runs another generator than the default lidar-sim one;
 # EXECUTOR=ray spreads the units over the cores (default: one process).

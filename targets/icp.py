@@ -31,6 +31,7 @@ from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.se3 import hat, se3_exp
 from icpbench.core.types import Registration
+from icpbench.targets import forward_cache
 
 Mode = Literal["plane", "point"]
 Backprop = Literal["unrolled", "implicit"]
@@ -171,17 +172,79 @@ def icp(
 
     finite = torch.isfinite(scans).all(-1)  # (B, N)
     p = torch.where(finite[..., None], scans, torch.zeros((), dtype=dtype))
+    query_bound = np.inf if cfg.d_max is None else (cfg.d_max * (3.0 if cfg.soft_dmax else 1.0))
+    implicit = cfg.backprop == "implicit" and scans.requires_grad and torch.is_grad_enabled()
+    graph = scans.requires_grad and torch.is_grad_enabled() and not implicit
+    # a forward pass without an unrolled graph is taken from the per-sample cache when the same
+    # scan was registered with the same settings before (icpbench.targets.forward_cache)
+    cacheable = not graph and cfg.nn_reuse_m == 0
+    keys: list[tuple] = []
+    found: list[forward_cache.SampleResult | None] = [None] * B
+    if cacheable:
+        settings = (tuple(sorted(asdict(replace(cfg, backprop="unrolled")).items())), mode)
+        keys = [forward_cache.sample_key(settings, scans[b], T_init[b], maps[b]) for b in range(B)]
+        found = [forward_cache.get(k) for k in keys]
+    miss = [b for b in range(B) if found[b] is None]
+    nn = None
+    if miss:
+        sel = torch.as_tensor(miss) if len(miss) < B else None
+        part = (p, finite, list(maps), T_init) if sel is None else (
+            p[sel], finite[sel], [maps[b] for b in miss], T_init[sel])
+        R_m, t_m, conv_m, it_m, inl_m, H_m, nn = _iterate(*part, cfg, mode, implicit,
+                                                           query_bound)
+        if sel is None and not cacheable:  # the whole batch, possibly with its unrolled graph
+            R, t, converged, iterations, n_inliers, H_last = R_m, t_m, conv_m, it_m, inl_m, H_m
+        for j, b in enumerate(miss):
+            found[b] = forward_cache.SampleResult(
+                R_m[j].detach(), t_m[j].detach(), bool(conv_m[j]), int(it_m[j]), int(inl_m[j]),
+                H_m[j].detach())
+            if cacheable:
+                forward_cache.put(keys[b], maps[b], found[b])
+    if cacheable or len(miss) < B:
+        R = torch.stack([f.R for f in found]).to(dtype)
+        t = torch.stack([f.t for f in found]).to(dtype)
+        converged = torch.tensor([f.converged for f in found])
+        iterations = torch.tensor([f.iterations for f in found], dtype=torch.long)
+        n_inliers = torch.tensor([f.n_inliers for f in found], dtype=torch.long)
+        H_last = torch.stack([f.H_last for f in found]).to(dtype)
+
+    if implicit:
+        if cacheable:  # a fresh exact search at the final pose, whether or not the pass was cached
+            nn = _Correspondences(maps, p.detach(), finite, dtype, bound=query_bound,
+                                  reuse=cfg.nn_reuse_m)
+        R, t = _implicit_pose(p.transpose(1, 2).contiguous(), R.detach(), t.detach(), nn,
+                              query_bound, cfg, mode)
+
+    T_out = torch.cat([torch.cat([R, t[..., None]], -1),
+                       T_init[:, 3:4, :].to(dtype)], 1)
+    status = _health(H_last, n_inliers, converged, T_out.detach(), cfg)
+    converged = converged & torch.tensor([s == "ok" for s in status])
+    return Registration(
+        T=T_out,
+        converged=converged,
+        iterations=iterations,
+        inlier_fraction=n_inliers.to(torch.float64) / max(N, 1),
+        status=status,
+    )
+
+
+def _iterate(p: torch.Tensor, finite: torch.Tensor, maps: Sequence[MapIndex], T_init: torch.Tensor,
+             cfg: ICPConfig, mode: Mode, implicit: bool, query_bound: float
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                        torch.Tensor, _Correspondences]:
+    """The ICP iterations on scans p (B, N, 3) (non-finite points zeroed, ``finite`` (B, N)) from
+    T_init (B, 4, 4): final R (B, 3, 3) and t (B, 3) (with the unrolled graph unless ``implicit``
+    or without grad), converged (B,), iterations (B,), inliers at the last iteration (B,), the last
+    normal-equation matrix (B, 6, 6) and the correspondence search at its end."""
+    B, dtype = p.shape[0], p.dtype
     T = T_init.to(dtype)
     R, t = T[:, :3, :3], T[:, :3, 3]
     active = torch.ones(B, dtype=torch.bool)
     iterations = torch.full((B,), cfg.max_iterations, dtype=torch.long)
     converged = torch.zeros(B, dtype=torch.bool)
     n_inliers = torch.zeros(B, dtype=torch.long)
-    query_bound = np.inf if cfg.d_max is None else (cfg.d_max * (3.0 if cfg.soft_dmax else 1.0))
     nn = _Correspondences(maps, p.detach(), finite, dtype, bound=query_bound, reuse=cfg.nn_reuse_m)
-
     H_last = torch.zeros(B, 6, 6, dtype=dtype)
-    implicit = cfg.backprop == "implicit" and scans.requires_grad and torch.is_grad_enabled()
     src = (p.detach() if implicit else p).transpose(1, 2).contiguous()  # (B, 3, N)
     with torch.set_grad_enabled(torch.is_grad_enabled() and not implicit):
         for it in range(cfg.max_iterations):
@@ -198,22 +261,7 @@ def icp(
             active = active & ~newly
             if not bool(active.any()):
                 break
-
-    if implicit:
-        R, t = _implicit_pose(p.transpose(1, 2).contiguous(), R.detach(), t.detach(), nn,
-                              query_bound, cfg, mode)
-
-    T_out = torch.cat([torch.cat([R, t[..., None]], -1),
-                       T_init[:, 3:4, :].to(dtype)], 1)
-    status = _health(H_last, n_inliers, converged, T_out.detach(), cfg)
-    converged = converged & torch.tensor([s == "ok" for s in status])
-    return Registration(
-        T=T_out,
-        converged=converged,
-        iterations=iterations,
-        inlier_fraction=n_inliers.to(torch.float64) / max(N, 1),
-        status=status,
-    )
+    return R, t, converged, iterations, n_inliers, H_last, nn
 
 
 class _Correspondences:

@@ -2,7 +2,7 @@
 problem) or a flagged row, never a traceback or a silent NaN: at the library boundary (samples,
 maps, targets, attacks, files, registry, run configs) and in the CLI (exit status 2, one line).
 
-One test per kind of bad input of issue 8; the last test drives every kind through the CLI.
+One test per kind of bad input; the last test drives every kind through the CLI.
 """
 
 import json

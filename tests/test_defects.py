@@ -1,4 +1,4 @@
-"""Regression tests for the defects a hostile new user found (issue 18): data loss or duplication,
+"""Regression tests for the defects a hostile new user found: data loss or duplication,
 wrong results without a word, accepted nonsense, tracebacks, messages that name the wrong problem,
 and one bad file killing a whole run. Each test failed before its fix."""
 

@@ -1,4 +1,4 @@
-"""Issue 3 must-show on `objects` (budgets 0.02 and 0.05, c = 0.15, d_max = 0.3): the uniform
+"""The harness on `objects` (budgets 0.02 and 0.05, c = 0.15, d_max = 0.3): the uniform
 shift is recovered as an error equal to the budget, the clean scan sits at the noise floor, and the
 displacement audit equals the budget where it should."""
 

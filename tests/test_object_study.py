@@ -1,4 +1,4 @@
-"""Issue 5/17 object case study with the shipped objects checkpoints, strict (every displacement
+"""The object case study (paper fig. 4) with the shipped objects checkpoints, strict (every displacement
 within the budget): the theta-only model causes larger heading errors than the x-only model, and
 the x-only model larger x errors (paper §IV-C2); the shipped models have the bounded output."""
 

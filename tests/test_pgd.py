@@ -132,7 +132,7 @@ def test_pgd_warm_is_a_preset_of_pgd(batch):
     assert registry.attacks.get("pgd-warm") is WarmPGDAttack
     assert WarmPGDAttack.param_types() == PGDAttack.param_types()
     default = WarmPGDAttack()
-    assert default.params["sector_iter"] == SectorIterSettings().as_dict()
+    assert default.params["sector_iter"] == SectorIterSettings(iterations=8, icp_nn_reuse=0.05).as_dict()
     assert default.steps == 2 and default.backprop == "implicit" and default.icp_nn_reuse == 0.05
     small = {"iterations": 1, "icp_iterations": 3}
     warm = WarmPGDAttack(sector_iter=small, icp_iterations=3)
@@ -143,4 +143,6 @@ def test_pgd_warm_is_a_preset_of_pgd(batch):
     ref = plain.run(batch, 0.5, surrogate=surrogate, generator=0)
     assert torch.equal(out.scans, ref.scans)
     assert float(out.stats["disp_max"].max()) <= 0.5 + 1e-9
-    assert WarmPGDAttack(init="sector").params["sector_iter"] is None
+    assert WarmPGDAttack(init="sector", sector_iter=None).params["sector_iter"] is None
+    with pytest.raises(InputError, match="sector_iter"):  # the preset's start settings need its start
+        WarmPGDAttack(init="sector")

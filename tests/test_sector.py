@@ -1,6 +1,6 @@
 """Tests of the analytic sector baseline (icpbench.core.sector_math) and the ``sector`` attack plugin.
 
-Must-show of issue 6: (a) closed form == brute force over all sign patterns, (b) sliding-window
+What they show: (a) closed form == brute force over all sign patterns, (b) sliding-window
 sweep == brute-force grid of start angles, (c) the explicit perturbation pushed through one step of
 our point-to-plane ICP reproduces the analytic estimate, (d) the plugin's shapes, displacement and
 extras, (e) resilience is monotone in the alert limit.

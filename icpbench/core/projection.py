@@ -12,7 +12,8 @@ def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,
     """Project each point's displacement ``adv - clean`` (B, N, 3) onto the Euclidean ball of radius
     ``budget_m`` (metres): one float for every sample, or a (B,) tensor with one budget per sample.
 
-    Differentiable in ``adv`` (and in a tensor budget); the gradient is finite at zero displacement."""
+    Differentiable in ``adv`` (and in a tensor budget); the gradient is finite at zero displacement.
+    Points already within their ball come back unchanged, bit for bit."""
     d = adv - clean
     norm = torch.linalg.vector_norm(d, dim=-1, keepdim=True)  # (B, N, 1)
     if isinstance(budget_m, torch.Tensor):
@@ -21,4 +22,6 @@ def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,
                              f"got {tuple(budget_m.shape)}")
         budget_m = budget_m.to(device=d.device, dtype=d.dtype)[:, None, None]
     scale = torch.clamp(budget_m / torch.clamp(norm, min=1e-12), max=1.0)
-    return clean + d * scale
+    # points within their ball are returned as they are, bit for bit (``clean + d`` may round
+    # differently from ``adv``), so a projected scan that needed no projection is the same scan
+    return torch.where(scale < 1.0, clean + d * scale, adv)
