@@ -37,6 +37,9 @@ def describe(path: Path) -> list[str]:
         out += [f"  - {stage}" for stage in lineage(card.get("init_card"))]
     if card.get("notes"):
         out.append(f"- notes: {card['notes']}")
+    if card.get("sector_iter"):
+        out.append(f"- prior during training (iterated sector attack settings): {card['sector_iter']}; "
+                   "at run time the generator attack's own `sector_iter` settings apply")
     ev = card.get("heldout_eval") or {}
     for lam, r in ev.items():
         out.append(f"- held-out (test passes, first {r['samples']} scans) λ={lam} m: mean "
@@ -80,8 +83,9 @@ def main() -> None:
     table = Path(args.table)
     if table.is_file():
         t = pd.read_csv(table)
+        shown = [c for c in t.columns if c == "Method" or "Trans Pose Error" in c or "% Ours" in c]
         lines += [f"## Table 1 ({args.table_title})", "",
-                  t.to_markdown(index=False), ""]
+                  t[shown].to_markdown(index=False), ""]
     (d / "MODEL_CARD.md").write_text("\n".join(lines))
     print(f"wrote {d / 'MODEL_CARD.md'}")
 

@@ -13,7 +13,7 @@ def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,
     ``budget_m`` (metres): one float for every sample, or a (B,) tensor with one budget per sample.
 
     Differentiable in ``adv`` (and in a tensor budget); the gradient is finite at zero displacement.
-    Points already within their ball come back unchanged, bit for bit."""
+    Points already within their ball (to a relative 1e-12) come back unchanged, bit for bit."""
     d = adv - clean
     norm = torch.linalg.vector_norm(d, dim=-1, keepdim=True)  # (B, N, 1)
     if isinstance(budget_m, torch.Tensor):
@@ -22,6 +22,7 @@ def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,
                              f"got {tuple(budget_m.shape)}")
         budget_m = budget_m.to(device=d.device, dtype=d.dtype)[:, None, None]
     scale = torch.clamp(budget_m / torch.clamp(norm, min=1e-12), max=1.0)
-    # points within their ball are returned as they are, bit for bit (``clean + d`` may round
-    # differently from ``adv``), so a projected scan that needed no projection is the same scan
-    return torch.where(scale < 1.0, clean + d * scale, adv)
+    # points within their ball (to a relative 1e-12: a point projected once sits on the sphere up
+    # to rounding) are returned as they are, bit for bit (``clean + d`` may round differently from
+    # ``adv``), so projecting a scan that needs no projection gives back the same scan
+    return torch.where(scale < 1.0 - 1e-12, clean + d * scale, adv)
