@@ -138,12 +138,12 @@ def _check_reference(reference: str, attacks: list[str] | set[str]) -> None:
 
 @app.command("list")
 def list_plugins() -> None:
-    """List every registered attack, target and dataset, and whether it can load."""
+    """List every registered attack, target, dataset and corruption, and whether it can load."""
     from tabulate import tabulate
 
     from icpbench.core import registry
 
-    for reg in (registry.attacks, registry.targets, registry.datasets):
+    for reg in (registry.attacks, registry.targets, registry.datasets, registry.corruptions):
         rows = [(i.name, "yes" if i.available else "NO", i.description if i.available else i.reason)
                 for i in reg.info()]
         typer.echo(f"\n{reg.kind}s ({reg.group}):")
