@@ -52,6 +52,8 @@ class RunProgress:
         self.stream = stream if stream is not None else sys.stderr
         self.interval_s, self.clock = float(interval_s), clock
         self.t0 = self.last = clock()
+        self.first_t: float | None = None  # when the first unit came back, and units done then
+        self.first_done = self.done
         tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.bar = (tqdm(total=self.total, initial=self.done, desc=desc, unit=unit,
                          file=self.stream, dynamic_ncols=True, smoothing=0.1)
@@ -67,14 +69,15 @@ class RunProgress:
         """``done/total units (pct), rate, time left`` (rate over the units computed here).
 
         The time left is shown once ``warmup`` units were computed here (e.g. one work item's
-        units: cheap and expensive units then weigh as they will over the run, and start-up is
-        a small part of the elapsed time); before that the line says it is still estimating."""
-        elapsed = max(self.clock() - self.t0, 1e-9)
+        units: cheap and expensive units then weigh as they will over the run), from the rate
+        since the first unit came back; before that the line says it is still estimating."""
         new = self.done - self.start_done
         pct = 100.0 * self.done / self.total if self.total else 100.0
         text = f"{self.done}/{self.total} {self.unit}s ({pct:.0f}%)"
-        if new >= self.warmup:
-            rate = new / elapsed
+        if new >= self.warmup and self.done > self.first_done:
+            # the rate since the first unit came back: start-up (process and cluster start,
+            # dataset generation, the first batch's maps) is not work the rest of the run repeats
+            rate = (self.done - self.first_done) / max(self.clock() - self.first_t, 1e-9)
             left = (self.total - self.done) / rate
             text += f", {rate:.3g} {self.unit}s/s, about {_duration(left)} left"
         elif self.done < self.total:
@@ -84,6 +87,8 @@ class RunProgress:
     def update(self, n: int = 1) -> None:
         """``n`` more units are done."""
         self.done += n
+        if self.first_t is None:
+            self.first_t, self.first_done = self.clock(), self.done
         if self.bar is not None:
             self.bar.update(n)
         elif self.enabled and self.clock() - self.last >= self.interval_s:
