@@ -2,10 +2,11 @@
 # The PGD oracle against the shipped generator and the normal baseline on lidar-sim at λ = 1 m:
 # per-scan projected gradient ascent through the differentiable p2plane ICP.
 # Table with PGD as the reference ("% PGD is Larger"), its displacement audit (max ≤ λ) and the
-# attack time per scan of each attack (ratio PGD / generator). ~12 min on 2 cores for 48 scans.
-# CHECKPOINT=path/to/generator.pt runs another generator than the default lidar-sim one (e.g. the
-# previous default, icpbench/checkpoints/lidar-sim-icp25/generator.pt); EXECUTOR=ray spreads the
-# units over the cores (default: one process, which keeps the two attacks' times comparable).
+# attack time per scan of each attack (ratio PGD / generator). ~6 min for 48 scans in one process
+# (~3 min with EXECUTOR=ray on 2 cores).
+# CHECKPOINT=path/to/generator.pt runs another generator than the default lidar-sim one; EXECUTOR=ray
+# spreads the units over the cores (default: one process, which keeps the two attacks' times
+# comparable).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=results/lidar-sim-oracle

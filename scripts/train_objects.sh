@@ -13,13 +13,6 @@
 #     train_wall_s_total; its init_card is the 3-epoch model's card). Validation (100 objects of
 #     the test split of dataset seed 1, not the demo's seed-0 objects; strict, λ = 0.05): mean
 #     x-y error 0.0609 -> 0.0662, % larger vs normal 65.3 -> 92.0, vs uniform 97.4 -> 100.
-#     Learning from the oracle (cached PGD, 10 steps from the sector attack, x-y weights, 256
-#     objects, 392 s to cache) did worse on the same validation: imitation only (--alpha 0
-#     --imitation 1, from the untrained prior model, 3 epochs, training imitation loss
-#     0.211 -> 0.198; the sector start itself scores about 0.15-0.31) 0.0538, 43.9% vs normal;
-#     the 3-epoch x-y model fine-tuned 2 epochs with --alpha 1 --imitation 0.1 0.0555, 48.6%.
-#     PGD's per-point normalised steps move every point, relevant or not, so most of what the
-#     imitation loss asks for is not predictable from the geometry.
 #   x-only and theta-only: the models below fine-tuned the same way (2 epochs, 256
 #     objects, lr 5e-4; 292 s and 306 s). Validation (same 100 seed-1 objects; means over
 #     converged runs): heading error theta-only 0.0507 -> 0.0550 rad against x-only 0.0389 ->

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Transfer table on lidar-sim at λ = 1 m: attacks crafted on the differentiable p2plane
-# surrogate, evaluated on every target. ~10 min on 2 cores for 20 samples (PGD dominates).
+# surrogate, evaluated on every target. ~5 min for 20 samples with EXECUTOR=ray on 2 cores (PGD dominates).
 # CHECKPOINT=path/to/generator.pt runs another generator than the default lidar-sim one;
 # EXECUTOR=ray spreads the units over the cores (default: one process).
 set -euo pipefail
