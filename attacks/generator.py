@@ -26,7 +26,7 @@ import torch
 
 from icpbench.attacks.base import Attack, project_to_ball
 from icpbench.core.errors import CheckpointError, InputError
-from icpbench.core.iterated_sector import SectorIterSettings
+from icpbench.core.iterated_sector import SectorIterSettings, surrogate_key
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 
@@ -156,8 +156,7 @@ class GeneratorAttack(Attack):
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate, generator
                  ) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
         key = ("generator", str(resolve_checkpoint(self.dataset, budget_m, self.checkpoint)),
-               self.device, float(budget_m), self.prior_settings, type(surrogate).__name__,
-               repr(getattr(surrogate, "config", None)))
+               self.device, float(budget_m), self.prior_settings, *surrogate_key(surrogate))
         if key in batch.memo:  # e.g. generator-refine after generator: the network ran already
             adv, reused = batch.memo[key]
         else:

@@ -178,29 +178,25 @@ def icp(
     # a forward pass without an unrolled graph is taken from the per-sample cache when the same
     # scan was registered with the same settings before (icpbench.targets.forward_cache)
     cacheable = not graph and cfg.nn_reuse_m == 0
-    keys: list[tuple] = []
-    found: list[forward_cache.SampleResult | None] = [None] * B
-    if cacheable:
+    nn = None
+    if not cacheable:  # the whole batch, possibly with its unrolled graph
+        R, t, converged, iterations, n_inliers, H_last, nn = _iterate(
+            p, finite, list(maps), T_init, cfg, mode, implicit, query_bound)
+    else:
         settings = (tuple(sorted(asdict(replace(cfg, backprop="unrolled")).items())), mode)
         keys = [forward_cache.sample_key(settings, scans[b], T_init[b], maps[b]) for b in range(B)]
         found = [forward_cache.get(k) for k in keys]
-    miss = [b for b in range(B) if found[b] is None]
-    nn = None
-    if miss:
-        sel = torch.as_tensor(miss) if len(miss) < B else None
-        part = (p, finite, list(maps), T_init) if sel is None else (
-            p[sel], finite[sel], [maps[b] for b in miss], T_init[sel])
-        R_m, t_m, conv_m, it_m, inl_m, H_m, nn = _iterate(*part, cfg, mode, implicit,
-                                                           query_bound)
-        if sel is None and not cacheable:  # the whole batch, possibly with its unrolled graph
-            R, t, converged, iterations, n_inliers, H_last = R_m, t_m, conv_m, it_m, inl_m, H_m
-        for j, b in enumerate(miss):
-            found[b] = forward_cache.SampleResult(
-                R_m[j].detach(), t_m[j].detach(), bool(conv_m[j]), int(it_m[j]), int(inl_m[j]),
-                H_m[j].detach())
-            if cacheable:
+        miss = [b for b in range(B) if found[b] is None]
+        if miss:
+            sel = torch.as_tensor(miss)
+            R_m, t_m, conv_m, it_m, inl_m, H_m, _ = _iterate(
+                p[sel], finite[sel], [maps[b] for b in miss], T_init[sel], cfg, mode, implicit,
+                query_bound)
+            for j, b in enumerate(miss):
+                found[b] = forward_cache.SampleResult(
+                    R_m[j].detach(), t_m[j].detach(), bool(conv_m[j]), int(it_m[j]),
+                    int(inl_m[j]), H_m[j].detach())
                 forward_cache.put(keys[b], maps[b], found[b])
-    if cacheable or len(miss) < B:
         R = torch.stack([f.R for f in found]).to(dtype)
         t = torch.stack([f.t for f in found]).to(dtype)
         converged = torch.tensor([f.converged for f in found])

@@ -160,9 +160,13 @@ class IteratedSectorResult:
     seconds: float
 
 
+def surrogate_key(target: Target | None) -> tuple[str, str]:
+    """What identifies a surrogate in a batch memo key: its class and its settings."""
+    return type(target).__name__, repr(getattr(target, "config", None))
+
+
 def _memo_key(settings: SectorIterSettings, budget_m: float, target: Target) -> tuple:
-    cfg = getattr(target, "config", None)
-    return ("sector-iter", float(budget_m), settings, type(target).__name__, repr(cfg))
+    return ("sector-iter", float(budget_m), settings, *surrogate_key(target))
 
 
 def is_memoised(batch: Batch, budget_m: float, surrogate: Target,
