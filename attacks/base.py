@@ -23,6 +23,7 @@ from icpbench.core.errors import InputError
 from icpbench.core.projection import project_to_ball
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
+from icpbench.targets.oracle import QueryOracle
 
 __all__ = ["Attack", "AttackOutput", "project_to_ball", "reuse_radius", "validate_budget"]
 
@@ -112,14 +113,17 @@ class SampleGenerators:
         generators: B generators, in batch order.
     """
 
-    def __init__(self, generators: Sequence[torch.Generator]) -> None:
+    def __init__(self, generators: Sequence[torch.Generator], seed: int | None = None) -> None:
         self.generators = list(generators)
+        #: the attack seed the streams were derived from (None when built from raw generators);
+        #: an attack that runs other attacks gives them this seed, so their streams are theirs
+        self.seed = seed
 
     @classmethod
     def for_batch(cls, batch: Batch, seed: int, attack: str, budget_m: float) -> SampleGenerators:
         """Generators seeded with :func:`sample_seed` of each sample of ``batch``."""
         return cls([torch.Generator().manual_seed(sample_seed(seed, attack, budget_m, s.id))
-                    for s in batch.samples])
+                    for s in batch.samples], seed=int(seed))
 
     def __len__(self) -> int:
         return len(self.generators)
@@ -167,6 +171,12 @@ class Attack(ABC):
     #: The attack's output depends neither on the budget nor on its random streams (the clean scan
     #: of ``none``): the runner then registers a batch once and reuses it for every budget.
     budget_invariant: ClassVar[bool] = False
+    #: The attack queries the *evaluated* target (:class:`~icpbench.targets.oracle.QueryOracle`):
+    #: :meth:`_perturb` then receives ``oracle=`` and the runner attacks each target separately.
+    needs_oracle: ClassVar[bool] = False
+    #: The attack also uses a gradient surrogate when it is given one (and runs without it), e.g.
+    #: the ensemble's PGD member; with ``--surrogate self`` it is then attacked per target.
+    uses_surrogate: ClassVar[bool] = False
     #: A *preset* of the base attack: the defaults this subclass changes. A subclass that sets it
     #: and defines no ``__init__`` is its base attack with these defaults (same settings, same
     #: code); e.g. ``pgd-warm`` is ``pgd`` with the cheaper oracle's defaults.
@@ -213,9 +223,16 @@ class Attack(ABC):
                 ``generator[b]`` (or use ``generator.rand``/``randn``) and nothing else.
         """
 
+    @classmethod
+    def adaptive(cls, self_surrogate: bool) -> bool:
+        """Whether the attack's output depends on the evaluated target: it queries it, or it
+        follows gradients and the run's surrogate is each target itself (``--surrogate self``)."""
+        return cls.needs_oracle or (self_surrogate and (cls.needs_surrogate or cls.uses_surrogate))
+
     @final
     def run(self, batch: Batch, budget_m: float, *, surrogate: Target | None = None,
-            generator: SampleGenerators | torch.Generator | int | None = None) -> AttackOutput:
+            generator: SampleGenerators | torch.Generator | int | None = None,
+            oracle: QueryOracle | None = None) -> AttackOutput:
         """Attack a batch and audit the displacement.
 
         Args:
@@ -225,6 +242,8 @@ class Attack(ABC):
             generator: the attack seed (an int; a ``torch.Generator`` stands for its initial seed;
                 None = 0), from which each sample gets its own stream (:func:`sample_seed` of seed,
                 attack name, budget and sample id), or ready :class:`SampleGenerators`.
+            oracle: query access to the evaluated target (required if ``needs_oracle``); its
+                per-sample query counts are added to the output's ``extra["queries"]``.
         """
         budget_m = validate_budget(budget_m)
         if self.needs_surrogate:
@@ -235,12 +254,21 @@ class Attack(ABC):
                     f"attack {self.name!r} needs a differentiable surrogate; "
                     f"{surrogate.name!r} is a black box (use p2plane or p2point as surrogate)"
                 )
+        if self.needs_oracle and oracle is None:
+            raise InputError(f"attack {self.name!r} queries the evaluated target: it needs an oracle")
         if not isinstance(generator, SampleGenerators):
             seed = (generator.initial_seed() if isinstance(generator, torch.Generator)
                     else 0 if generator is None else int(generator))
             generator = SampleGenerators.for_batch(batch, seed, self.name, budget_m)
-        out = self._perturb(batch, budget_m, surrogate=surrogate, generator=generator)
+        before = None if oracle is None else oracle.queries.copy()
+        if self.needs_oracle:
+            out = self._perturb(batch, budget_m, surrogate=surrogate, generator=generator,
+                                oracle=oracle)
+        else:
+            out = self._perturb(batch, budget_m, surrogate=surrogate, generator=generator)
         adv, extra = out if isinstance(out, tuple) else (out, {})
+        if oracle is not None and before is not None:
+            extra = {**extra, "queries": oracle.queries - before}
         if adv.shape != batch.scans.shape:
             raise RuntimeError(
                 f"attack {self.name!r} returned shape {tuple(adv.shape)}, "

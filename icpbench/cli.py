@@ -170,7 +170,9 @@ def run(
     seed: Annotated[str | None, typer.Option(help="Attack seed(s), comma-separated. [default: 0]")]
     = None,
     surrogate: Annotated[str | None, typer.Option(
-        help="Differentiable target for gradient attacks. [default: p2plane]")] = None,
+        help="Differentiable target for gradient attacks, or `self`: each evaluated target "
+             "itself (or its differentiable replica) at its own converged pose, so gradient "
+             "attacks adapt to each target. [default: p2plane]")] = None,
     split: Annotated[str | None, typer.Option(help="Dataset split. [default: test]")] = None,
     strict: Annotated[bool | None, typer.Option(
         "--strict/--no-strict", help="Project displacements onto the λ-ball. [default: no]")]

@@ -50,6 +50,11 @@ from icpbench.harness.results import (
     write_json_atomic,
 )
 from icpbench.targets.base import Target
+from icpbench.targets.oracle import QueryOracle
+from icpbench.targets.self_surrogate import self_surrogate
+
+#: ``RunConfig.surrogate`` value that attacks each target through itself (or its replica).
+SELF = "self"
 
 
 @dataclass
@@ -68,7 +73,9 @@ class RunConfig:
             the dataset's ``default_budgets``.
         samples: number of samples (the first K of the split; None = all).
         seeds: attack seeds; each adds one row per (sample, attack, target, budget).
-        surrogate: differentiable target that gradient-based attacks use.
+        surrogate: differentiable target that gradient-based attacks use; ``"self"``: each
+            target itself, or its differentiable replica, at its own converged pose (the
+            gradient attacks then run once per target, adaptively).
         icp_preset: ICP settings preset for every target (default: the dataset's).
         batch_size: samples per batch (results do not depend on it).
         strict: project every attack's per-point displacement onto its budget ball.
@@ -108,9 +115,9 @@ class RunConfig:
         ds_cls = registry.datasets.get(self.dataset)
         self.attacks = registry.attacks.resolve(self.attacks)
         self.targets = registry.targets.resolve(self.targets)
-        sur_cls = registry.targets.get(self.surrogate)
         needs = [a for a in self.attacks if registry.attacks.get(a).needs_surrogate]
-        if needs and not sur_cls.differentiable:
+        if self.surrogate != SELF and needs and \
+                not registry.targets.get(self.surrogate).differentiable:
             raise InputError(f"attack(s) {', '.join(needs)} need a differentiable surrogate; "
                              f"{self.surrogate!r} is a black box (use --surrogate p2plane or p2point)")
         if self.budgets is None:
@@ -141,7 +148,8 @@ class RunConfig:
         """Plugin settings: only for plugins in the run, only keys they declare, typed values."""
         for what, given, allowed in (("attack", self.attack_params, self.attacks),
                                      ("target", self.target_params,
-                                      [*self.targets, self.surrogate])):
+                                      [*self.targets, *([self.surrogate]
+                                                        if self.surrogate != SELF else [])])):
             stray = sorted(set(given) - set(allowed))
             if stray:
                 raise InputError(f"settings given for {what}(s) {', '.join(map(repr, stray))} that "
@@ -304,9 +312,22 @@ class GridWorker:
         self.preset = cfg.icp_preset or self.dataset.icp_preset
         self.targets = {n: build_target(n, self.preset, cfg.target_params.get(n))
                         for n in cfg.targets}
-        self.surrogate = (self.targets.get(cfg.surrogate) or
-                          build_target(cfg.surrogate, self.preset,
-                                       cfg.target_params.get(cfg.surrogate)))
+        self.self_surrogates: dict[str, Target | None] | None = None
+        if cfg.surrogate == SELF:
+            self.surrogate: Target | None = None
+            self.self_surrogates = {n: self_surrogate(t) for n, t in self.targets.items()}
+            blind = [n for n, s in self.self_surrogates.items() if s is None]
+            needs = [a for a in cfg.attacks if registry.attacks.get(a).needs_surrogate]
+            if blind and needs:
+                raise InputError(
+                    f"attack(s) {', '.join(needs)} need gradients, and target(s) "
+                    f"{', '.join(blind)} have neither gradients nor a differentiable replica: "
+                    f"attack them with query-only attacks (e.g. sector-adaptive, search, "
+                    f"ensemble) or use --surrogate p2plane")
+        else:
+            self.surrogate = (self.targets.get(cfg.surrogate) or
+                              build_target(cfg.surrogate, self.preset,
+                                           cfg.target_params.get(cfg.surrogate)))
         self.attacks = {n: build_attack(n, cfg.strict, {**_attack_context(n, cfg, self.dataset),
                                                         **cfg.attack_params.get(n, {})})
                         for n in cfg.attacks}
@@ -337,7 +358,7 @@ class GridWorker:
         for budget, aname in item.units:
             rows = [] if batch is None else _run_unit(
                 batch, self.attacks[aname], self.targets, self.surrogate, self.prepared, budget,
-                item.seed, self.cfg, invariant_cache)
+                item.seed, self.cfg, invariant_cache, self.self_surrogates)
             for tname in self.targets:
                 for r in _base_rows(list(bad), [{}] * len(bad), aname, tname, budget, item.seed,
                                     self.cfg):
@@ -401,7 +422,9 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
         store = ResultsStore(out_dir)
         manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
-        manifest["surrogate_settings"] = worker.surrogate.settings()
+        manifest["surrogate_settings"] = (
+            worker.surrogate.settings() if worker.self_surrogates is None else
+            {n: (None if s is None else s.settings()) for n, s in worker.self_surrogates.items()})
         manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
         manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         write_json_atomic(out_dir / MANIFEST_FILE, manifest)
@@ -486,70 +509,97 @@ def _attack_context(name: str, cfg: RunConfig, dataset: Dataset) -> dict[str, An
     return {}
 
 
-def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogate: Target,
+def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogate: Target | None,
               prepared: dict[str, dict[str, Any]], budget: float, seed: int, cfg: RunConfig,
-              invariant_cache: dict[tuple[str, str], tuple]) -> list[dict[str, Any]]:
-    """Attack one batch once and register it with every target; return the rows.
+              invariant_cache: dict[tuple[str, str], tuple],
+              self_surrogates: Mapping[str, Target | None] | None = None) -> list[dict[str, Any]]:
+    """Attack one batch and register it with every target; return the rows.
+
+    A non-adaptive attack runs once and every target registers its output (transfer). An adaptive
+    one (:meth:`Attack.adaptive`: it queries the evaluated target, or follows gradients while the
+    run's surrogate is ``self``) runs once per target, against that target: with a
+    :class:`~icpbench.targets.oracle.QueryOracle` of it and, under ``--surrogate self``, with the
+    target itself or its replica as surrogate (``self_surrogates``).
 
     Each sample's random stream comes from (seed, attack, budget, sample id), so the rows do not
     depend on the batch. An attack that is ``budget_invariant`` is registered once per batch."""
+    if attack.adaptive(self_surrogates is not None):
+        groups = [[t] for t in targets]
+    else:
+        groups = [list(targets)]
+    rows: list[dict[str, Any]] = []
+    for names in groups:
+        sur = surrogate if self_surrogates is None else (
+            self_surrogates[names[0]] if len(names) == 1 else None)
+        oracle = None
+        if attack.needs_oracle:
+            target = targets[names[0]]
+            maps = batch.maps if target.differentiable else _prepared(target, names[0], batch,
+                                                                      prepared)
+            oracle = QueryOracle(target, batch, maps)
+        t0 = time.perf_counter()
+        try:
+            out: AttackOutput | None = attack.run(batch, budget, surrogate=sur,
+                                                  generator=int(seed), oracle=oracle)
+            attack_err = ""
+        except Exception as exc:  # a crashing plugin becomes failed rows, the run goes on
+            out, attack_err = None, f"{type(exc).__name__}: {exc}"
+        attack_time = (time.perf_counter() - t0) / len(batch)
+        for tname in names:
+            rows += _target_rows(batch, attack, tname, targets[tname], out, attack_err,
+                                 attack_time, prepared, budget, seed, cfg, invariant_cache)
+    return rows
+
+
+def _target_rows(batch: Batch, attack: Attack, tname: str, target: Target,
+                 out: AttackOutput | None, attack_err: str, attack_time: float,
+                 prepared: dict[str, dict[str, Any]], budget: float, seed: int, cfg: RunConfig,
+                 invariant_cache: dict[tuple[str, str], tuple]) -> list[dict[str, Any]]:
+    """Register an attack's output (or record its failure) with one target; the rows."""
     B = len(batch)
-    t0 = time.perf_counter()
-    try:
-        out: AttackOutput = attack.run(batch, budget, surrogate=surrogate, generator=int(seed))
-        attack_err = ""
-    except Exception as exc:  # a crashing plugin becomes failed rows, the run goes on
-        out, attack_err = None, f"{type(exc).__name__}: {exc}"
-    attack_time = (time.perf_counter() - t0) / B
     ids = [s.id for s in batch.samples]
     metas = [s.meta for s in batch.samples]
-    rows: list[dict[str, Any]] = []
-    for tname, target in targets.items():
-        base = _base_rows(ids, metas, attack.name, tname, budget, seed, cfg)
-        if out is None:
-            for r in base:
-                r.update(status="error", converged=False, error=attack_err,
-                         attack_time_s=attack_time)
-            rows += base
-            continue
-        cache_key = (attack.name, tname)
-        t1 = time.perf_counter()
-        try:
-            if attack.budget_invariant and cache_key in invariant_cache:
-                reg_T, conv, iters, inl, status = invariant_cache[cache_key]
-            else:
-                maps = batch.maps if target.differentiable else _prepared(target, tname, batch,
-                                                                         prepared)
-                with torch.no_grad():
-                    reg = target.register(out.scans, maps, batch.T_init)
-                reg_T, conv, iters, inl, status = (reg.T.detach().to(torch.float64),
-                                                   reg.converged, reg.iterations,
-                                                   reg.inlier_fraction, reg.status)
-                if attack.budget_invariant:
-                    invariant_cache[cache_key] = (reg_T, conv, iters, inl, status)
-            icp_err = ""
-        except Exception as exc:
-            icp_err = f"{type(exc).__name__}: {exc}"
-        icp_time = (time.perf_counter() - t1) / B
-        if icp_err:
-            for r in base:
-                r.update(status="error", converged=False, error=icp_err,
-                         attack_time_s=attack_time, icp_time_s=icp_time)
-            rows += base
-            continue
-        err = pose_error_components(reg_T, batch.T_gt)
-        for b, r in enumerate(base):
-            vals = {c: float(err[c][b]) for c in POSE_ERROR_COLUMNS}
-            finite = all(math.isfinite(v) for v in vals.values())
-            st = status[b] if finite else "nonfinite"
-            r.update(vals)
-            r.update({k: float(out.stats[k][b]) for k in (*STAT_COLUMNS, "disp_max_raw")})
-            r.update(status=st, converged=bool(conv[b]) and st == "ok",
-                     iterations=int(iters[b]), inlier_fraction=float(inl[b]),
-                     attack_time_s=attack_time, icp_time_s=icp_time, error="",
-                     extra={k: float(np.asarray(v)[b]) for k, v in out.extra.items()})
-        rows += base
-    return rows
+    base = _base_rows(ids, metas, attack.name, tname, budget, seed, cfg)
+    if out is None:
+        for r in base:
+            r.update(status="error", converged=False, error=attack_err, attack_time_s=attack_time)
+        return base
+    cache_key = (attack.name, tname)
+    t1 = time.perf_counter()
+    try:
+        if attack.budget_invariant and cache_key in invariant_cache:
+            reg_T, conv, iters, inl, status = invariant_cache[cache_key]
+        else:
+            maps = batch.maps if target.differentiable else _prepared(target, tname, batch,
+                                                                     prepared)
+            with torch.no_grad():
+                reg = target.register(out.scans, maps, batch.T_init)
+            reg_T, conv, iters, inl, status = (reg.T.detach().to(torch.float64),
+                                               reg.converged, reg.iterations,
+                                               reg.inlier_fraction, reg.status)
+            if attack.budget_invariant:
+                invariant_cache[cache_key] = (reg_T, conv, iters, inl, status)
+        icp_err = ""
+    except Exception as exc:
+        icp_err = f"{type(exc).__name__}: {exc}"
+    icp_time = (time.perf_counter() - t1) / B
+    if icp_err:
+        for r in base:
+            r.update(status="error", converged=False, error=icp_err,
+                     attack_time_s=attack_time, icp_time_s=icp_time)
+        return base
+    err = pose_error_components(reg_T, batch.T_gt)
+    for b, r in enumerate(base):
+        vals = {c: float(err[c][b]) for c in POSE_ERROR_COLUMNS}
+        finite = all(math.isfinite(v) for v in vals.values())
+        st = status[b] if finite else "nonfinite"
+        r.update(vals)
+        r.update({k: float(out.stats[k][b]) for k in (*STAT_COLUMNS, "disp_max_raw")})
+        r.update(status=st, converged=bool(conv[b]) and st == "ok",
+                 iterations=int(iters[b]), inlier_fraction=float(inl[b]),
+                 attack_time_s=attack_time, icp_time_s=icp_time, error="",
+                 extra={k: float(np.asarray(v)[b]) for k, v in out.extra.items()})
+    return base
 
 
 def _prepared(target: Target, tname: str, batch: Batch, cache: dict[str, dict[str, Any]]) -> list:

@@ -1,0 +1,172 @@
+"""Attack ``ensemble``: per scan, the largest error on the *evaluated* target over a fixed standard
+set of attacks, white-box and query-only.
+
+Beyond the paper; the ICP version of AutoAttack (Croce and Hein, "Reliable evaluation of adversarial
+robustness with an ensemble of diverse parameter-free attacks", ICML 2020): a robustness figure
+measured with one non-adaptive attack is an upper bound that is routinely wrong, so the harness
+reports the worst over a fixed, diverse, adaptive set. Members, in order:
+
+=====================  =========================================================================
+``uniform``            the whole scan translated by lambda (the paper's baseline)
+``normal``             every point by lambda along its map normal, projected to x-y (paper)
+``sector``             the analytic one-step point-to-plane worst case (Laconte et al., RA-L 2024)
+``sector-adaptive``    the one-step worst case of the target's *own* cost, re-linearised where the
+                       target lands (queries only; :mod:`icpbench.attacks.sector_adaptive`)
+``pgd``                projected gradient ascent through the run's surrogate, started from the best
+                       scan of the members before it: with ``--surrogate self`` the target itself,
+                       or its differentiable replica, at its own converged pose (implicit
+                       gradient); skipped when there is no differentiable surrogate
+``search``             score-based random search (:mod:`icpbench.attacks.search`) started from the
+                       best scan of the members before it
+=====================  =========================================================================
+
+Every member's output is registered by the target (a query) and the scan with the largest
+``trans_err_xy`` is kept, so the ensemble's row is never below any member's on any scan (the
+members run with the attack seed they would have alone, so their outputs are the rows they
+would give alone). Per row: ``extra.winner`` (index of the winning member in :data:`MEMBERS`),
+``extra.err_<member>`` (each member's error on the target, NaN where skipped), ``extra.queries``.
+
+When the query search, started from the gradient member's result, still raises the error on a
+*differentiable* target by more than :data:`WEAK_GRADIENT_GAIN`, the gradient stalled where random
+search climbs: it is weak there (masked, truncated or aimed at the wrong pose), and the ICP is not
+as robust as the gradient alone would say. A warning is logged (logger ``icpbench``) and
+``extra.weak_gradient`` is 1 on those scans.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from icpbench.attacks.base import Attack, SampleGenerators
+from icpbench.attacks.normal import NormalTranslationAttack
+from icpbench.attacks.pgd import PGDAttack
+from icpbench.attacks.search import QuerySearchAttack
+from icpbench.attacks.sector import SectorAttack
+from icpbench.attacks.sector_adaptive import SectorAdaptiveAttack, score
+from icpbench.attacks.uniform import UniformTranslationAttack
+from icpbench.core.errors import InputError
+from icpbench.core.types import Batch
+from icpbench.targets.base import Target
+from icpbench.targets.oracle import QueryOracle
+
+MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "search")
+#: Members that use nothing but the target's output pose.
+QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "search"})
+
+#: Relative gain of the search over the gradient member that flags a weak gradient.
+WEAK_GRADIENT_GAIN = 0.1
+
+log = logging.getLogger("icpbench")
+
+
+def column(member: str) -> str:
+    """The ``extra`` key of a member's error (``err_sector_adaptive`` for ``sector-adaptive``)."""
+    return "err_" + member.replace("-", "_")
+
+
+class EnsembleAttack(Attack):
+    """Worst case per scan over the standard members (module docstring).
+
+    Args:
+        pgd_steps: ascent steps of the ``pgd`` member (0: skip it).
+        pgd_step_size: its step as a fraction of lambda.
+        sector_iterations: re-linearisations of the ``sector-adaptive`` member.
+        queries: query budget of the ``search`` member per scan (0: skip it).
+    """
+
+    name: ClassVar[str] = "ensemble"
+    description: ClassVar[str] = (
+        "Per scan, the worst error on the evaluated target over uniform, normal, sector, "
+        "sector-adaptive, PGD (through the target or its replica) and a query search"
+    )
+    needs_oracle: ClassVar[bool] = True
+    uses_surrogate: ClassVar[bool] = True
+
+    def __init__(self, *, strict: bool = False, pgd_steps: int = 5, pgd_step_size: float = 0.1,
+                 sector_iterations: int = 4, queries: int = 30, **params: Any) -> None:
+        for nm, v in (("pgd_steps", pgd_steps), ("sector_iterations", sector_iterations),
+                      ("queries", queries)):
+            if isinstance(v, bool) or int(v) != v or int(v) < 0:
+                raise InputError(f"{self.name} {nm} must be an integer >= 0, got {v!r}")
+        self.pgd_steps, self.queries = int(pgd_steps), int(queries)
+        self.members: dict[str, Attack] = {
+            "uniform": UniformTranslationAttack(strict=strict),
+            "normal": NormalTranslationAttack(strict=strict),
+            "sector": SectorAttack(strict=strict),
+            "sector-adaptive": SectorAdaptiveAttack(strict=strict,
+                                                    iterations=int(sector_iterations)),
+        }
+        self.pgd_step_size = float(pgd_step_size)
+        if self.pgd_steps:
+            PGDAttack(steps=self.pgd_steps, step_size=self.pgd_step_size)  # checks the settings
+        self.search_attack = QuerySearchAttack(strict=strict, queries=max(self.queries, 1))
+        super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
+                         sector_iterations=int(sector_iterations), queries=self.queries,
+                         members=list(MEMBERS), **params)
+
+    def _pgd(self, surrogate: Target) -> PGDAttack:
+        """The PGD member for this surrogate: its own iteration cap, implicit gradient."""
+        cap = getattr(getattr(surrogate, "config", None), "max_iterations", 100)
+        return PGDAttack(strict=self.strict, steps=self.pgd_steps, step_size=self.pgd_step_size,
+                         icp_iterations=int(cap), backprop="implicit")
+
+    def _perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None,
+                 generator: SampleGenerators, oracle: QueryOracle
+                 ) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
+        seed = 0 if generator.seed is None else generator.seed
+        clean = batch.scans.detach().to(torch.float64)
+        B = len(batch)
+        best = clean.clone()
+        best_err = np.full(B, np.nan)
+        winner = np.full(B, np.nan)
+        extra: dict[str, np.ndarray] = {}
+        for i, name in enumerate(MEMBERS):
+            t0 = time.perf_counter()
+            if name == "search":
+                if self.queries == 0:
+                    err = np.full(B, np.nan)
+                else:
+                    gens = SampleGenerators.for_batch(batch, seed, name, budget_m)
+                    start_err = np.where(np.isnan(best_err), np.nan, best_err)
+                    adv_np, err = self.search_attack.search(
+                        batch, budget_m, oracle, gens, start=best.numpy(),
+                        start_err=None if np.isnan(start_err).any() else start_err)
+                    adv = torch.as_tensor(adv_np)
+            elif name == "pgd":
+                if self.pgd_steps == 0 or surrogate is None or not surrogate.differentiable:
+                    err = np.full(B, np.nan)
+                else:
+                    adv = self._pgd(surrogate).refine(batch, best.to(batch.scans.dtype),
+                                                      budget_m, surrogate=surrogate)
+                    adv = adv.to(torch.float64)
+                    err = oracle.errors(adv)
+            else:
+                member = self.members[name]
+                adv = member.run(batch, budget_m, surrogate=surrogate, generator=seed,
+                                 oracle=oracle if member.needs_oracle else None
+                                 ).scans.to(torch.float64)
+                err = oracle.errors(adv)
+            extra[column(name)] = err
+            extra["s_" + name.replace("-", "_")] = np.full(B, (time.perf_counter() - t0) / B)
+            better = score(err) > score(best_err)
+            if better.any():
+                sel = torch.as_tensor(better)
+                best[sel] = adv[sel]
+                best_err[better], winner[better] = err[better], i
+        extra["winner"] = winner
+        weak = np.zeros(B)
+        g, q = extra[column("pgd")], extra[column("search")]
+        if getattr(oracle.target, "differentiable", False) and not np.isnan(g).all():
+            weak = (score(q) > (1 + WEAK_GRADIENT_GAIN) * score(g)).astype(np.float64)
+            if weak.any():
+                log.warning("ensemble: on %d of %d scans of the differentiable target %r the query "
+                            "search raised the gradient member's error by more than %d%%: the "
+                            "gradient is weak there, not the ICP robust", int(weak.sum()), B,
+                            oracle.name, round(100 * WEAK_GRADIENT_GAIN))
+        extra["weak_gradient"] = weak
+        return best.to(batch.scans.dtype), extra

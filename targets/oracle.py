@@ -1,0 +1,85 @@
+"""Query access to the evaluated target: what a query-only (score-based) attack may ask.
+
+A :class:`QueryOracle` wraps one target and one batch: an attack hands it adversarial scans of
+(some of) the batch's samples and gets back the pose the target estimates and its horizontal error
+``trans_err_xy`` against the true pose, the quantity Table 1 reports. Nothing else of the target is
+exposed (no gradient, no correspondences), so an attack that uses only the oracle runs against any
+target, black boxes included, as the score-based attacks of image classification do (Andriushchenko
+et al., "Square Attack: a query-efficient black-box adversarial attack via random search",
+ECCV 2020). Every registration of a sample counts as one query of that sample; the runner records
+the counts per row.
+
+Frames: scans (B, N, 3) in the sensor frame; poses ``T_map_scan`` (4, 4); errors in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from icpbench.core.errors import InputError
+from icpbench.core.se3 import pose_error
+from icpbench.core.types import Batch
+from icpbench.targets.base import Target
+
+
+class QueryOracle:
+    """The evaluated target, for one batch, as a counted query interface.
+
+    Args:
+        target: the target the rows are evaluated on.
+        batch: the batch under attack (true poses and initial guesses).
+        maps: B maps in the form ``target.register`` takes (prepared handles for a black box, the
+            batch's ``MapIndex`` for a differentiable target).
+    """
+
+    def __init__(self, target: Target, batch: Batch, maps: Sequence[Any]) -> None:
+        if len(maps) != len(batch):
+            raise InputError(f"oracle: got {len(maps)} maps for a batch of {len(batch)} scans")
+        self.target = target
+        self.batch = batch
+        self.maps = list(maps)
+        self.queries = np.zeros(len(batch), dtype=np.int64)
+
+    @property
+    def name(self) -> str:
+        """The evaluated target's registry name."""
+        return self.target.name
+
+    def register(self, scans: torch.Tensor | np.ndarray, index: Sequence[int] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+        """Register adversarial scans with the target (one query per sample).
+
+        Args:
+            scans: (K, N, 3) scans, sensor frame, of the samples ``index`` (default: all B, K = B).
+            index: which samples of the batch the K scans belong to.
+
+        Returns:
+            ``(T, err_xy, status)``: estimated poses (K, 4, 4) float64, horizontal errors
+            ``||rho_xy||`` (K,) in metres (NaN where the pose is not finite: an attack should not
+            count a diverged estimate as a large error, since Table 1 cannot average it) and the
+            target's per-sample status.
+        """
+        idx = np.arange(len(self.batch)) if index is None else np.asarray(index, dtype=np.int64)
+        x = torch.as_tensor(np.asarray(scans) if isinstance(scans, np.ndarray) else scans.detach())
+        if x.ndim != 3 or x.shape[0] != idx.size or x.shape[-1] != 3:
+            raise InputError(f"oracle: scans must have shape ({idx.size}, N, 3), got "
+                             f"{tuple(x.shape)}")
+        sel = torch.as_tensor(idx)
+        with torch.no_grad():
+            reg = self.target.register(x.to(self.batch.scans.dtype), [self.maps[i] for i in idx],
+                                       self.batch.T_init[sel])
+        np.add.at(self.queries, idx, 1)
+        T = reg.T.detach().to(torch.float64)
+        xi = pose_error(T, self.batch.T_gt[sel].to(torch.float64))
+        err = torch.linalg.norm(xi[:, :2], dim=-1).numpy()
+        err = np.where(np.isfinite(err), err, np.nan)
+        return T.numpy(), err, list(reg.status)
+
+    def errors(self, scans: torch.Tensor | np.ndarray, index: Sequence[int] | None = None
+               ) -> np.ndarray:
+        """Horizontal errors (K,) in metres of the target on ``scans`` (see :meth:`register`)."""
+        return self.register(scans, index)[1]
