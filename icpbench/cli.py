@@ -308,6 +308,66 @@ def table(
         _user_error(exc)
 
 
+@app.command()
+def leaderboard(
+    samples: Annotated[int | None, typer.Option(
+        help="Scans per variant (the first K of the split). [default: 16]")] = None,
+    budgets: Annotated[str | None, typer.Option(
+        help="Comma-separated budgets λ (metres). [default: 0.5,1,2]")] = None,
+    variants: Annotated[str | None, typer.Option(
+        help="Comma-separated labels of the standard variants to rank. [default: all]")] = None,
+    add_target: Annotated[list[str] | None, typer.Option(
+        help="A further target plugin to rank with its defaults (repeatable): your own ICP.")]
+    = None,
+    dataset: Annotated[str, typer.Option(help="Dataset.")] = "lidar-sim",
+    dataset_param: Annotated[list[str] | None, typer.Option(
+        help="Dataset setting KEY=VALUE, repeatable.")] = None,
+    ensemble_param: Annotated[list[str] | None, typer.Option(
+        help="Ensemble setting KEY=VALUE, repeatable (pgd_steps, pgd_step_size, "
+             "sector_iterations, queries).")] = None,
+    seed: Annotated[int, typer.Option(help="Attack seed.")] = 0,
+    executor: Annotated[str, typer.Option(help="local or ray (see `icpbench run`).")] = "local",
+    out: Annotated[str, typer.Option(help="Board folder (re-run to resume).")]
+    = "results/leaderboard",
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
+) -> None:
+    """Rank ICP variants by the worst case the attack ensemble finds against each (adaptive:
+    --surrogate self); writes leaderboard.md/.csv/.png and one results folder per variant."""
+    from icpbench.harness.leaderboard import STANDARD_VARIANTS, LeaderboardConfig, run_leaderboard
+
+    out_dir: Path | None = None
+    try:
+        out_dir = _out_dir(out)
+        cfg = LeaderboardConfig(dataset=dataset, seed=seed, executor=executor,
+                                dataset_params=_flat(dataset_param, "--dataset-param"),
+                                ensemble=_flat(ensemble_param, "--ensemble-param"),
+                                extra_targets=list(add_target or []))
+        if samples is not None:
+            cfg.samples = samples
+        if budgets is not None:
+            cfg.budgets = _floats(budgets, "--budgets")
+            if not cfg.budgets:
+                raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
+        if variants is not None:
+            labels = [v.strip() for v in variants.split(",") if v.strip()]
+            known = {v.label for v in STANDARD_VARIANTS}
+            # a label may contain commas only if it is a known one: re-join split pieces
+            cfg.variants = labels if all(lb in known for lb in labels) else [variants.strip()]
+        n = len(cfg.resolve())
+
+        def note(v, status: str) -> None:
+            if not quiet:
+                typer.echo(f"[{v.label}] {status}", err=True)
+
+        board = run_leaderboard(cfg, out_dir, progress=not quiet, on_variant=note)
+        typer.echo((out_dir / "leaderboard.md").read_text())
+        typer.echo(f"{n} variant(s), {len(board)} rows: {out_dir}/leaderboard.md, .csv, .png")
+    except KeyboardInterrupt:
+        _interrupted(out_dir)
+    except Exception as exc:
+        _user_error(exc)
+
+
 @app.command("show-dataset")
 def show_dataset(
     name: Annotated[str, typer.Argument(help="Dataset name, e.g. lidar-sim.")] = "lidar-sim",

@@ -1,0 +1,317 @@
+"""The leaderboard: ICP variants ranked by the worst case the ``ensemble`` finds against each.
+
+RobustBench (Croce et al., NeurIPS 2021 datasets and benchmarks track) ranks image classifiers by the
+accuracy left under AutoAttack, a fixed ensemble of adaptive attacks; this is the ICP version. Each
+variant (a target plugin with its settings) is attacked *adaptively*: ``ensemble`` with
+``--surrogate self`` (every gradient member through the target itself or its differentiable replica,
+every query member against the target's own output), at each budget lambda. A variant's row reports
+
+* its clean error (attack ``none``),
+* the ensemble's mean and median worst-case ``trans_err_xy`` (metres),
+* the amplification: worst-case error / lambda (a rigid translation of the scan by lambda gives
+  about 1), and the share of scans whose amplification stays <= :data:`SAFE_AMPLIFICATION`,
+* the ensemble over ``uniform`` (how much worse than translating the whole scan),
+* attack time per scan and queries per scan, and which member won how often.
+
+Rows are ranked by the mean amplification at the middle budget, most robust first. Every variant
+is an ordinary results folder (``<out>/runs/<variant>/``), so the board resumes where it stopped and
+each number can be traced to its rows. A user's own ICP joins as a target plugin
+(``extra_targets``): README, "Put your ICP on the leaderboard".
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from icpbench.attacks.ensemble import MEMBERS, column
+from icpbench.core import registry
+from icpbench.core.errors import InputError
+from icpbench.harness.results import load_results, write_json_atomic
+from icpbench.harness.runner import SELF, RunConfig, git_commit, package_versions
+from icpbench.harness.runner import run as run_grid
+
+#: A scan counts as "held" when its worst-case error stays within this multiple of lambda.
+SAFE_AMPLIFICATION = 1.5
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One row of the board: a target plugin with settings.
+
+    Attributes:
+        label: the row's name (also its results folder, made file-name safe).
+        target: the target's registry name.
+        params: its settings (``--target-param`` keys).
+    """
+
+    label: str
+    target: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def slug(self) -> str:
+        """A file-name-safe folder name for the label."""
+        return re.sub(r"[^A-Za-z0-9._-]+", "-", self.label).strip("-.") or "variant"
+
+
+#: The standard board (the ICP variants the harness ships or wraps).
+STANDARD_VARIANTS: tuple[Variant, ...] = (
+    Variant("p2plane (Cauchy)", "p2plane"),
+    Variant("p2plane (no kernel)", "p2plane", {"cauchy_c": None}),
+    Variant("p2plane (Huber)", "p2plane", {"kernel": "huber"}),
+    Variant("p2plane (d_max 2 m)", "p2plane", {"d_max": 2.0}),
+    Variant("p2plane (d_max 1 m)", "p2plane", {"d_max": 1.0}),
+    Variant("p2point", "p2point"),
+    Variant("open3d p2plane", "open3d"),
+    Variant("open3d p2point", "open3d", {"mode": "point", "cauchy_c": None}),
+    Variant("kiss-icp", "kiss-icp"),
+    Variant("small-gicp GICP", "small-gicp"),
+    Variant("small-gicp plane ICP", "small-gicp", {"registration_type": "PLANE_ICP"}),
+)
+
+
+@dataclass
+class LeaderboardConfig:
+    """What a board is computed from (recorded in its manifest).
+
+    Attributes:
+        dataset, dataset_params, split: the data (default: the simulated lidar test route).
+        samples: scans per variant (the first K of the split).
+        budgets: lambda values (metres).
+        variants: labels of :data:`STANDARD_VARIANTS` to include (None: all).
+        extra_targets: registry names of further target plugins, each a row with its defaults.
+        ensemble: settings of the ``ensemble`` attack (``pgd_steps``, ``queries``, ...).
+        seed: attack seed.
+        batch_size: scans per batch.
+        executor: ``local`` or ``ray`` (see ``icpbench run --executor``).
+    """
+
+    dataset: str = "lidar-sim"
+    dataset_params: dict[str, Any] = field(default_factory=dict)
+    split: str = "test"
+    samples: int | None = 16
+    budgets: list[float] = field(default_factory=lambda: [0.5, 1.0, 2.0])
+    variants: list[str] | None = None
+    extra_targets: list[str] = field(default_factory=list)
+    ensemble: dict[str, Any] = field(default_factory=dict)
+    seed: int = 0
+    batch_size: int = 4
+    executor: str = "local"
+
+    def resolve(self) -> list[Variant]:
+        """The variants of this board, checked.
+
+        Raises:
+            InputError: an unknown variant label or target name, or no variant at all.
+        """
+        by_label = {v.label: v for v in STANDARD_VARIANTS}
+        if self.variants is None:
+            chosen = list(STANDARD_VARIANTS)
+        else:
+            unknown = [v for v in self.variants if v not in by_label]
+            if unknown:
+                raise InputError(f"unknown leaderboard variant(s) {', '.join(map(repr, unknown))}; "
+                                 f"valid: {', '.join(by_label)}")
+            chosen = [by_label[v] for v in self.variants]
+        for t in self.extra_targets:
+            registry.targets.get(t)  # raises, listing the valid names
+            chosen.append(Variant(t, t))
+        if not chosen:
+            raise InputError("the leaderboard has no variant to rank")
+        slugs = [v.slug for v in chosen]
+        if len(set(slugs)) != len(slugs):
+            raise InputError(f"two variants share a folder name: {slugs}")
+        return chosen
+
+    def run_config(self, v: Variant) -> RunConfig:
+        """The ``icpbench run`` configuration of one variant."""
+        return RunConfig(dataset=self.dataset, dataset_params=dict(self.dataset_params),
+                         split=self.split, attacks=["none", "ensemble"], targets=[v.target],
+                         budgets=list(self.budgets), samples=self.samples, seeds=[self.seed],
+                         surrogate=SELF, batch_size=self.batch_size, executor=self.executor,
+                         attack_params={"ensemble": dict(self.ensemble)} if self.ensemble else {},
+                         target_params={v.target: dict(v.params)} if v.params else {})
+
+
+def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bool = True,
+                    on_variant: Callable[[Variant, str], None] | None = None) -> pd.DataFrame:
+    """Compute (or resume) every variant's run under ``out_dir/runs`` and write the board.
+
+    A variant whose settings its target refuses (e.g. a kernel it does not have) is skipped and
+    named in the board and its manifest. ``on_variant(variant, status)`` is called as each one
+    starts (``"running"``) or is skipped (the reason).
+
+    Returns:
+        The board (one row per variant and budget), also written as ``leaderboard.csv``.
+    """
+    out = Path(out_dir)
+    variants = cfg.resolve()
+    runs: dict[str, Path] = {}
+    skipped: dict[str, str] = {}
+    for v in variants:
+        rc = cfg.run_config(v)
+        try:
+            rc.validate()
+        except InputError as exc:
+            skipped[v.label] = str(exc)
+            if on_variant:
+                on_variant(v, f"skipped: {exc}")
+            continue
+        if on_variant:
+            on_variant(v, "running")
+        run_grid(rc, out / "runs" / v.slug, progress=progress)
+        runs[v.label] = out / "runs" / v.slug
+    board = summarise(runs, cfg.budgets)
+    write_board(board, out, cfg, skipped)
+    return board
+
+
+def summarise(runs: dict[str, Path], budgets: Sequence[float]) -> pd.DataFrame:
+    """The board (one row per variant and budget) from the variants' results folders."""
+    rows = []
+    for label, path in runs.items():
+        df = load_results(path)
+        clean = df[df.attack == "none"]
+        clean_err = clean.drop_duplicates("sample_id").trans_err_xy
+        for lam in budgets:
+            e = df[(df.attack == "ensemble") & np.isclose(df.budget, lam)]
+            if e.empty:
+                continue
+            err = e.trans_err_xy.to_numpy(dtype=float)
+            ok = np.isfinite(err)
+            amp = err / lam
+            uni = e.get(f"extra.{column('uniform')}", pd.Series(np.nan, index=e.index))
+            win = e.get("extra.winner", pd.Series(np.nan, index=e.index)).dropna().astype(int)
+            row = {
+                "variant": label, "budget": float(lam), "scans": int(len(e)),
+                "clean_mean": float(clean_err.mean()), "clean_median": float(clean_err.median()),
+                "worst_mean": float(np.mean(err[ok])) if ok.any() else math.nan,
+                "worst_median": float(np.median(err[ok])) if ok.any() else math.nan,
+                "amplification": float(np.mean(amp[ok])) if ok.any() else math.nan,
+                "held_share": float(np.mean(ok & (amp <= SAFE_AMPLIFICATION))),
+                "diverged": int((~ok).sum()),
+                "uniform_mean": float(np.nanmean(uni)) if uni.notna().any() else math.nan,
+                "attack_s": float(e.attack_time_s.mean()),
+                "queries": float(e.get("extra.queries", pd.Series(np.nan)).mean()),
+                "weak_gradient": float(e.get("extra.weak_gradient", pd.Series(0.0)).mean()),
+            }
+            row["over_uniform"] = row["worst_mean"] / row["uniform_mean"] \
+                if row["uniform_mean"] and math.isfinite(row["uniform_mean"]) else math.nan
+            for i, m in enumerate(MEMBERS):
+                row[f"won_{m}"] = int((win == i).sum())
+            rows.append(row)
+    board = pd.DataFrame(rows)
+    if board.empty:
+        raise InputError("no variant produced ensemble rows: nothing to rank")
+    mid = sorted(budgets)[len(budgets) // 2]
+    rank = board[np.isclose(board.budget, mid)].set_index("variant").amplification
+    board["rank_key"] = board.variant.map(rank).fillna(np.inf)
+    return board.sort_values(["rank_key", "variant", "budget"]).drop(columns="rank_key") \
+        .reset_index(drop=True)
+
+
+def _fmt(x: float, nd: int = 2) -> str:
+    return "-" if x is None or not math.isfinite(float(x)) else f"{float(x):.{nd}f}"
+
+
+def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[str, str]) -> str:
+    """The board as Markdown: the ranking, then time/queries and the members' wins."""
+    budgets = sorted(board.budget.unique())
+    order = list(dict.fromkeys(board.variant))
+    lines = [
+        "# ICP leaderboard: worst case under the attack ensemble",
+        "",
+        f"Data: `{cfg.dataset}` {cfg.split} split, {int(board.scans.max())} scans per variant; "
+        f"attack: `ensemble` (members {', '.join(MEMBERS)}) with `--surrogate self`; "
+        f"errors are `trans_err_xy` in metres. Amplification = worst-case error / λ (a rigid "
+        f"translation of the scan by λ gives about 1); *held* = share of scans with amplification "
+        f"<= {SAFE_AMPLIFICATION:g}. Ranked by mean amplification at λ = "
+        f"{budgets[len(budgets) // 2]:g} m, most robust first.",
+        "",
+    ]
+    head = ["#", "variant", "clean mean [m]"]
+    for lam in budgets:
+        head += [f"λ={lam:g}: mean [m]", "median [m]", "ampl.", "held", "× uniform"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for k, v in enumerate(order, 1):
+        r = board[board.variant == v].set_index("budget")
+        cells = [str(k), v, _fmt(r.clean_mean.iloc[0], 3)]
+        for lam in budgets:
+            if lam not in r.index:
+                cells += ["-"] * 5
+                continue
+            x = r.loc[lam]
+            cells += [_fmt(x.worst_mean), _fmt(x.worst_median), _fmt(x.amplification),
+                      f"{100 * x.held_share:.0f}%", _fmt(x.over_uniform, 1)]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "Attack cost per scan (seconds, queries) and the member that found each scan's "
+              "worst case (counts over all budgets):", ""]
+    head = ["variant", *[f"λ={lam:g}: s / queries" for lam in budgets], *MEMBERS]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for v in order:
+        r = board[board.variant == v].set_index("budget")
+        cells = [v] + [f"{_fmt(r.loc[lam].attack_s, 1)} / {_fmt(r.loc[lam].queries, 0)}"
+                       if lam in r.index else "-" for lam in budgets]
+        cells += [str(int(r[f"won_{m}"].sum())) for m in MEMBERS]
+        lines.append("| " + " | ".join(cells) + " |")
+    weak = board[board.weak_gradient > 0]
+    if not weak.empty:
+        lines += ["", "Weak gradient (the query search still raised the gradient member's error by "
+                  "more than 10%) on a share of scans: " + ", ".join(
+                      f"{r.variant} λ={r.budget:g}: {100 * r.weak_gradient:.0f}%"
+                      for r in weak.itertuples()) + "."]
+    if skipped:
+        lines += ["", "Not ranked (their target refused the settings): " + "; ".join(
+            f"{k}: {v}" for k, v in skipped.items())]
+    return "\n".join(lines) + "\n"
+
+
+def board_figure(board: pd.DataFrame, path: Path) -> None:
+    """Grouped horizontal bars of the mean amplification per variant and budget (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    budgets = sorted(board.budget.unique())
+    order = list(dict.fromkeys(board.variant))
+    fig, ax = plt.subplots(figsize=(8, 0.45 * len(order) * len(budgets) ** 0.5 + 1.6))
+    h = 0.8 / len(budgets)
+    y = np.arange(len(order))
+    for j, lam in enumerate(budgets):
+        r = board[np.isclose(board.budget, lam)].set_index("variant").reindex(order)
+        ax.barh(y + (j - (len(budgets) - 1) / 2) * h, r.amplification.fillna(0), height=h,
+                label=f"λ = {lam:g} m")
+    ax.axvline(1.0, color="k", ls="--", lw=1)
+    ax.text(1.0, -0.9, " rigid translation", fontsize=8, va="center")
+    ax.axvline(SAFE_AMPLIFICATION, color="grey", ls=":", lw=1)
+    ax.set_yticks(y, order)
+    ax.invert_yaxis()
+    ax.set_xlabel("worst-case error / λ (mean over scans; lower is more robust)")
+    ax.set_title("ICP variants under the attack ensemble (most robust on top)")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
+                skipped: dict[str, str]) -> None:
+    """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    board.to_csv(out / "leaderboard.csv", index=False, float_format="%.6g")
+    (out / "leaderboard.md").write_text(board_markdown(board, cfg, skipped))
+    board_figure(board, out / "leaderboard.png")
+    write_json_atomic(out / "manifest.json", {
+        "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
+        "skipped": skipped, "versions": package_versions(), "git": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
