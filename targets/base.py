@@ -114,3 +114,11 @@ class Target(ABC):
     def settings(self) -> dict[str, Any]:
         """Settings recorded in the results manifest."""
         return {}
+
+    def replica(self) -> Target | None:
+        """The differentiable target that reproduces this one with the same settings (a gradient
+        attack on a black box runs through it), or None where there is none.
+
+        Default: the target itself when it is differentiable, else None. Black boxes with a
+        replica override this (docs/methods.md, "Differentiable replicas of the black boxes")."""
+        return self if self.differentiable else None

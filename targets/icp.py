@@ -9,8 +9,11 @@ neighbour search moved to a KD-tree outside autograd:
   the weights and the Gauss-Newton solve, unrolled over all iterations (``backprop="unrolled"``)
   or, with ``backprop="implicit"``, by the implicit function theorem at the final pose (the
   iterations themselves build no graph);
-* Cauchy robust weight ``1 / (1 + (r / c)^2)`` on the point-to-plane residual ``r = n.(q - m)``
-  (point-to-point: on ``||q - m||``), not detached (IRLS is differentiated through);
+* robust weight on the point-to-plane residual ``r = n.(q - m)`` (point-to-point: on
+  ``||q - m||``), not detached (IRLS is differentiated through): Cauchy ``1 / (1 + (r / c)^2)``
+  (dICP's, the default), Huber ``min(1, c / |r|)`` or Geman-McClure ``1 / (1 + (r / c)^2)^2``
+  (KISS-ICP's weight ``kappa^2 / (kappa + r^2)^2`` with ``kappa = c^2``; Vizzo et al., RA-L
+  2023), or none (``ICPConfig.kernel``, scale ``ICPConfig.cauchy_c``);
 * maximum correspondence distance ``d_max``: a hard gate, or optionally a smooth
   ``0.5 + 0.5 tanh(k (d_max - d) / d_max)`` gate for training;
 * left-perturbation update ``T <- exp(delta^) T`` with ``delta = [rho, phi]``;
@@ -33,8 +36,11 @@ from icpbench.core.se3 import hat, se3_exp
 from icpbench.core.types import Registration
 from icpbench.targets import forward_cache
 
-Mode = Literal["plane", "point"]
+Mode = Literal["plane", "point", "gicp"]
 Backprop = Literal["unrolled", "implicit"]
+Kernel = Literal["cauchy", "huber", "geman_mcclure"]
+#: The robust kernels of :class:`ICPConfig` (``kernel``).
+KERNELS: tuple[str, ...] = ("cauchy", "huber", "geman_mcclure")
 
 
 @dataclass(frozen=True)
@@ -45,7 +51,9 @@ class ICPConfig:
         max_iterations: cap on Gauss-Newton iterations.
         tol: convergence threshold on ``||delta||_2`` of the 6-vector increment (m and rad mixed,
             as in dICP).
-        cauchy_c: Cauchy parameter c (metres); ``None`` disables the robust kernel.
+        cauchy_c: scale c (metres) of the robust kernel named by ``kernel`` (the field keeps its
+            first name, from when Cauchy was the only kernel, so saved configurations still
+            load); ``None`` disables the robust kernel (weights 1, whatever ``kernel`` says).
         d_max: maximum correspondence distance (metres); ``None`` disables the filter.
         soft_dmax: use the smooth gate instead of the hard one (training only).
         soft_steepness: k of the smooth gate (dimensionless; the gate falls from 0.88 to 0.12
@@ -64,6 +72,12 @@ class ICPConfig:
             or ``"implicit"`` (the iterations run without a graph; the gradient is the
             implicit-function derivative of the final pose, exact at a converged pose; the pose
             value is unchanged and training can use the evaluation's iteration cap).
+        kernel: the robust weight ``w(r)`` of a residual r (point-to-plane distance, or
+            point-to-point distance) with scale ``c = cauchy_c``: ``"cauchy"`` (default, dICP's)
+            ``1 / (1 + r^2 / c^2)``; ``"huber"`` ``min(1, c / |r|)`` (the IRLS weight of Huber's
+            loss); ``"geman_mcclure"`` ``1 / (1 + r^2 / c^2)^2``, KISS-ICP's weight
+            ``kappa^2 / (kappa + r^2)^2`` with ``kappa = c^2`` (Vizzo et al., RA-L 2023, eq. 11).
+            Weights are differentiated (unrolled and implicit gradients alike).
     """
 
     max_iterations: int = 100
@@ -77,6 +91,7 @@ class ICPConfig:
     kdtree_workers: int = 1
     nn_reuse_m: float = 0.0
     backprop: Backprop = "unrolled"
+    kernel: Kernel = "cauchy"
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -85,6 +100,8 @@ class ICPConfig:
             raise InputError(f"tol must be > 0, got {self.tol}")
         if self.backprop not in ("unrolled", "implicit"):
             raise InputError(f"backprop must be 'unrolled' or 'implicit', got {self.backprop!r}")
+        if self.kernel not in KERNELS:
+            raise InputError(f"kernel must be one of {', '.join(KERNELS)}, got {self.kernel!r}")
         if not (np.isfinite(self.nn_reuse_m) and self.nn_reuse_m >= 0):
             raise InputError(f"nn_reuse_m must be a finite number >= 0 (metres), got {self.nn_reuse_m}")
         for name in ("cauchy_c", "d_max"):
@@ -132,10 +149,34 @@ def _gate(d: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:
     return (d < cfg.d_max).to(d.dtype)
 
 
-def _cauchy(r2: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:
+def _robust(r2: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:
+    """Robust weight (differentiable) of squared residuals r2 (B, N) (``ICPConfig.kernel``)."""
     if cfg.cauchy_c is None:
         return torch.ones_like(r2)
-    return 1.0 / (1.0 + r2 / (cfg.cauchy_c**2))
+    return kernel_weight(r2, cfg.kernel, cfg.cauchy_c**2)[0]
+
+
+def kernel_weight(r2: torch.Tensor, kernel: str, c2: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Robust weight w and its slope ``dw / d(r^2)`` for squared residuals r2 (any shape, units of
+    c2), kernel scale ``c2 = c^2`` (``inf``: no kernel, w = 1, slope 0).
+
+    The weight is built from differentiable operations, so autograd of ``w`` is the slope too; the
+    slope is returned for hand-written backward passes. Huber's weight is 1 for ``r^2 <= c^2`` and
+    ``c / |r|`` beyond (continuous, its slope jumps at ``|r| = c``)."""
+    if not np.isfinite(c2):
+        return torch.ones_like(r2), torch.zeros_like(r2)
+    if kernel == "cauchy":
+        w = 1.0 / (1.0 + r2 / c2)
+        return w, -w * w / c2
+    if kernel == "geman_mcclure":
+        u = 1.0 / (1.0 + r2 / c2)
+        return u * u, -2.0 * u * u * u / c2
+    if kernel == "huber":
+        out = r2 > c2
+        big = torch.clamp(r2, min=c2)
+        w = torch.where(out, np.sqrt(c2) * torch.rsqrt(big), torch.ones((), dtype=r2.dtype))
+        return w, torch.where(out, -0.5 * w / big, torch.zeros((), dtype=r2.dtype))
+    raise InputError(f"unknown kernel {kernel!r}; valid: {', '.join(KERNELS)}")
 
 
 def icp(
@@ -144,6 +185,7 @@ def icp(
     T_init: torch.Tensor,
     cfg: ICPConfig,
     mode: Mode = "plane",
+    scan_cov: torch.Tensor | None = None,
 ) -> Registration:
     """Run batched differentiable ICP.
 
@@ -152,7 +194,11 @@ def icp(
         maps: B prepared maps (``MapIndex``); point-to-plane needs their normals.
         T_init: (B, 4, 4) initial scan->map transforms.
         cfg: ICP settings.
-        mode: ``"plane"`` (point-to-plane) or ``"point"`` (point-to-point).
+        mode: ``"plane"`` (point-to-plane), ``"point"`` (point-to-point) or ``"gicp"``
+            (Generalized-ICP: the maps' ``table`` rows carry covariances instead of normals,
+            :class:`icpbench.targets.gicp_replica.CovarianceMap`, and ``scan_cov`` is required).
+        scan_cov: GICP only: (B, 6, N) covariances of the scan points (sensor frame, entries
+            ``xx yy zz xy xz yz``); may carry a graph to the scans.
 
     Returns:
         Registration with differentiable T (B, 4, 4) in ``scans``' dtype.
@@ -167,8 +213,12 @@ def icp(
     if not scans.is_floating_point():
         raise InputError(f"scans must be floating point, got {scans.dtype}")
     dtype = scans.dtype
+    if mode not in ("plane", "point", "gicp"):
+        raise InputError(f"mode must be 'plane', 'point' or 'gicp', got {mode!r}")
     if mode == "plane" and any(m.normals is None for m in maps):
         raise InputError("point-to-plane ICP needs map normals")
+    if mode == "gicp" and (scan_cov is None or tuple(scan_cov.shape) != (B, 6, N)):
+        raise InputError(f"GICP needs scan covariances of shape ({B}, 6, {N})")
 
     finite = torch.isfinite(scans).all(-1)  # (B, N)
     p = torch.where(finite[..., None], scans, torch.zeros((), dtype=dtype))
@@ -177,11 +227,11 @@ def icp(
     graph = scans.requires_grad and torch.is_grad_enabled() and not implicit
     # a forward pass without an unrolled graph is taken from the per-sample cache when the same
     # scan was registered with the same settings before (icpbench.targets.forward_cache)
-    cacheable = not graph and cfg.nn_reuse_m == 0
+    cacheable = not graph and cfg.nn_reuse_m == 0 and scan_cov is None
     nn = None
     if not cacheable:  # the whole batch, possibly with its unrolled graph
         R, t, converged, iterations, n_inliers, H_last, nn = _iterate(
-            p, finite, list(maps), T_init, cfg, mode, implicit, query_bound)
+            p, finite, list(maps), T_init, cfg, mode, implicit, query_bound, scan_cov)
     else:
         settings = (tuple(sorted(asdict(replace(cfg, backprop="unrolled")).items())), mode)
         keys = [forward_cache.sample_key(settings, scans[b], T_init[b], maps[b]) for b in range(B)]
@@ -209,7 +259,7 @@ def icp(
             nn = _Correspondences(maps, p.detach(), finite, dtype, bound=query_bound,
                                   reuse=cfg.nn_reuse_m)
         R, t = _implicit_pose(p.transpose(1, 2).contiguous(), R.detach(), t.detach(), nn,
-                              query_bound, cfg, mode)
+                              query_bound, cfg, mode, scan_cov)
 
     T_out = torch.cat([torch.cat([R, t[..., None]], -1),
                        T_init[:, 3:4, :].to(dtype)], 1)
@@ -225,7 +275,8 @@ def icp(
 
 
 def _iterate(p: torch.Tensor, finite: torch.Tensor, maps: Sequence[MapIndex], T_init: torch.Tensor,
-             cfg: ICPConfig, mode: Mode, implicit: bool, query_bound: float
+             cfg: ICPConfig, mode: Mode, implicit: bool, query_bound: float,
+             scan_cov: torch.Tensor | None = None
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
                         torch.Tensor, _Correspondences]:
     """The ICP iterations on scans p (B, N, 3) (non-finite points zeroed, ``finite`` (B, N)) from
@@ -242,9 +293,10 @@ def _iterate(p: torch.Tensor, finite: torch.Tensor, maps: Sequence[MapIndex], T_
     nn = _Correspondences(maps, p.detach(), finite, dtype, bound=query_bound, reuse=cfg.nn_reuse_m)
     H_last = torch.zeros(B, 6, 6, dtype=dtype)
     src = (p.detach() if implicit else p).transpose(1, 2).contiguous()  # (B, 3, N)
+    cov = scan_cov.detach() if implicit and scan_cov is not None else scan_cov
     with torch.set_grad_enabled(torch.is_grad_enabled() and not implicit):
         for it in range(cfg.max_iterations):
-            H, g, w = _linearise(src, R, t, nn, active, query_bound, cfg, mode)
+            H, g, w = _linearise(src, R, t, nn, active, query_bound, cfg, mode, cov)
             n_inliers = torch.where(active, (w.detach() > 0).sum(1), n_inliers)
             H_last = torch.where(active[:, None, None], H.detach(), H_last)
             delta = _solve(H, g, cfg)
@@ -346,10 +398,12 @@ class _Correspondences:
         return torch.from_numpy(self.idx)
 
     def gather(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Map points and normals (B, 3, N) each, at table rows idx (B, N). (A row gather then a
+        """Map points (B, 3, N) and the rest of their table rows (normals (B, 3, N), or GICP
+        covariances (B, 6, N)) at table rows idx (B, N). (A row gather then a
         transpose: measured 10-15x faster than gathering columns of a (6, M) table.)"""
         B, N = idx.shape
-        mn = self.table.index_select(0, idx.reshape(-1)).view(B, N, 6).transpose(1, 2).contiguous()
+        W = self.table.shape[1]
+        mn = self.table.index_select(0, idx.reshape(-1)).view(B, N, W).transpose(1, 2).contiguous()
         return mn[:, :3], mn[:, 3:]
 
 
@@ -371,38 +425,46 @@ class _PlaneNormalEquations(torch.autograd.Function):
 
     Forward: q (B, 3, N) map-frame scan points, m and n (B, 3, N) their map correspondences and
     unit normals (no gradient), ``mask`` (B, N) bool (finite, active, distance below the gate),
-    ``c2`` the squared Cauchy parameter (``inf``: no robust kernel). Returns
-    ``H = sum_i w_i J_i J_i^T`` (B, 6, 6), ``g = sum_i w_i r_i J_i`` (B, 6) and w (B, N), with
-    ``r_i = n_i.(q_i - m_i)``, ``J_i = [n_i, q_i x n_i]``, ``w_i = mask_i / (1 + r_i^2 / c^2)``.
+    ``c2`` the squared kernel scale (``inf``: no robust kernel) and ``kernel`` its name
+    (:func:`kernel_weight`). Returns ``H = sum_i w_i J_i J_i^T`` (B, 6, 6),
+    ``g = sum_i w_i r_i J_i`` (B, 6) and w (B, N), with ``r_i = n_i.(q_i - m_i)``,
+    ``J_i = [n_i, q_i x n_i]``, ``w_i = mask_i k(r_i^2)`` (Cauchy: ``k = 1 / (1 + r^2 / c^2)``).
 
     Backward (exact; the gate is a step with no gradient, as in autograd of the same formula):
     with ``S = dL/dH + dL/dH^T``, ``P_i = S J_i`` and ``gJ_i = dL/dg . J_i``,
-    ``dL/dw_i = J_i.P_i / 2 + r_i gJ_i``, ``dL/dr_i = w_i gJ_i + dL/dw_i dw_i/dr_i``,
+    ``dL/dw_i = J_i.P_i / 2 + r_i gJ_i``, ``dL/dr_i = w_i gJ_i + dL/dw_i dw_i/dr_i`` (with
+    ``dw_i/dr_i = 2 r_i dk/d(r^2)``),
     ``dL/dJ_i = w_i (P_i + r_i dL/dg)`` and ``dL/dq_i = dL/dr_i n_i + n_i x (dL/dJ_i)[3:]``.
     One graph node per iteration instead of ~30 (measured in docs/performance.md).
     """
 
     @staticmethod
     def forward(ctx: Any, q: torch.Tensor, m: torch.Tensor, n: torch.Tensor, mask: torch.Tensor,
-                c2: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                c2: float, kernel: str = "cauchy"
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         r = _dot(q - m, n)  # (B, N)
         w = mask.to(q.dtype)
+        slope = None
         if np.isfinite(c2):
-            w = w / (1.0 + r * r / c2)
+            if kernel == "cauchy":  # dICP's kernel, in its original arithmetic
+                w = w / (1.0 + r * r / c2)
+            else:
+                k, slope = kernel_weight(r * r, kernel, c2)
+                w, slope = w * k, slope * mask
         r = r * mask
         J = torch.cat([n, _cross(q, n)], 1)  # (B, 6, N): [d/drho, d/dphi]
         Jw = J * w[:, None]
         H = Jw @ J.transpose(1, 2)
         g = (Jw @ r[..., None])[..., 0]
-        ctx.save_for_backward(n, J, w, r)
-        ctx.c2 = c2
+        ctx.save_for_backward(n, J, w, r, slope if slope is not None else w)
+        ctx.c2, ctx.kernel = c2, kernel
         ctx.mark_non_differentiable(w)
         return H, g, w
 
     @staticmethod
     def backward(ctx: Any, gH: torch.Tensor | None, gg: torch.Tensor | None,
                  _gw: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
-        n, J, w, r = ctx.saved_tensors
+        n, J, w, r, slope = ctx.saved_tensors
         B = J.shape[0]
         if gH is None:
             gH = torch.zeros(B, 6, 6, dtype=J.dtype)
@@ -413,21 +475,26 @@ class _PlaneNormalEquations(torch.autograd.Function):
         dw = 0.5 * (J * P).sum(1) + r * gJ
         dr = w * gJ
         if np.isfinite(ctx.c2):
-            dr = dr - dw * (2.0 / ctx.c2) * r * w * w
+            if ctx.kernel == "cauchy":
+                dr = dr - dw * (2.0 / ctx.c2) * r * w * w
+            else:  # dw/dr = 2 r dw/d(r^2)
+                dr = dr + dw * 2.0 * r * slope
         dJu = w[:, None] * (P[:, 3:] + r[:, None] * gg[:, 3:, None])  # (B, 3, N)
         dq = dr[:, None] * n + _cross(n, dJu)
-        return dq, None, None, None, None
+        return dq, None, None, None, None, None
 
 
 def _linearise(p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, nn: _Correspondences,
-               active: torch.Tensor, query_bound: float, cfg: ICPConfig, mode: Mode
+               active: torch.Tensor, query_bound: float, cfg: ICPConfig, mode: Mode,
+               scan_cov: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One Gauss-Newton linearisation at the pose (R (B, 3, 3), t (B, 3)) of scan points p (B, 3, N)
     (coordinates as rows: measured 2-3x faster element-wise ops than (B, N, 3)).
 
     Correspondences (KD-tree, no gradient) for the ``active`` samples only (the others get none).
     Returns H (B, 6, 6), g (B, 6) of the IRLS normal equations ``H delta = -g`` and the weights
-    w (B, N) (0 for points without a correspondence)."""
+    w (B, N) (0 for points without a correspondence). ``scan_cov`` (B, 6, N): GICP's scan
+    covariances (:func:`_gicp_normal_equations`)."""
     dtype = p.dtype
     q = R @ p + t[..., None]  # (B, 3, N), map frame
     m, n = nn.gather(nn.update(q, active))
@@ -439,39 +506,110 @@ def _linearise(p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, nn: _Correspon
         # hard gate: the correspondence exists and is closer than d_max (= the query bound)
         mask = valid & (d2 < query_bound**2) if np.isfinite(query_bound) else valid
         c2 = np.inf if cfg.cauchy_c is None else cfg.cauchy_c**2
-        return _PlaneNormalEquations.apply(q, m, n, mask, c2)
+        return _PlaneNormalEquations.apply(q, m, n, mask, c2, cfg.kernel)
     ok = valid & (d2 < query_bound**2)
+    if mode in ("point", "gicp"):
+        e = torch.where(ok[:, None], diff, torch.zeros((), dtype=dtype))  # (B, 3, N)
+        if mode == "gicp":
+            return _gicp_normal_equations(q, e, ok, R, n, scan_cov)
+        d = torch.sqrt(torch.where(ok, _dot(diff, diff), torch.ones((), dtype=dtype)))
+        w = _gate(d, cfg) * _robust(_dot(e, e), cfg)
+        w = torch.where(ok, w, torch.zeros((), dtype=dtype))
+        H, g = _point_normal_equations(q, e, w)
+        return H, g, w
     q, diff, n = q.transpose(1, 2), diff.transpose(1, 2), n.transpose(1, 2)  # (B, N, 3) views
     d = torch.linalg.norm(torch.where(ok[..., None], diff, torch.ones((), dtype=dtype)), dim=-1)
-    if mode == "plane":
-        r = (diff * n).sum(-1)  # (B, N)
-        w = _gate(d, cfg) * _cauchy(r * r, cfg)
-        w = torch.where(ok, w, torch.zeros((), dtype=dtype))
-        r = torch.where(ok, r, torch.zeros((), dtype=dtype))
-        J = torch.cat([n, torch.linalg.cross(q, n, dim=-1)], -1)  # (B, N, 6): [d/drho, d/dphi]
-        Jw = J * w[..., None]
-        H = Jw.transpose(1, 2) @ J
-        g = (Jw * r[..., None]).sum(1)
-    else:
-        e = torch.where(ok[..., None], diff, torch.zeros((), dtype=dtype))  # (B, N, 3)
-        w = _gate(d, cfg) * _cauchy((e * e).sum(-1), cfg)
-        w = torch.where(ok, w, torch.zeros((), dtype=dtype))
-        # de/drho = I, de/dphi = -[q]x
-        Jphi = -hat(q)  # (B, N, 3, 3)
-        sw = w.sum(1)
-        Hrr = sw[:, None, None] * torch.eye(3, dtype=dtype)
-        Hrp = (w[..., None, None] * Jphi).sum(1)
-        Hpp = (w[..., None, None] * (Jphi.transpose(-1, -2) @ Jphi)).sum(1)
-        H = torch.cat([torch.cat([Hrr, Hrp], 2), torch.cat([Hrp.transpose(1, 2), Hpp], 2)], 1)
-        g = torch.cat([(w[..., None] * e).sum(1),
-                       (w[..., None, None] * Jphi.transpose(-1, -2) @ e[..., None])[..., 0]
-                       .sum(1)], -1)
+    r = (diff * n).sum(-1)  # (B, N)
+    w = _gate(d, cfg) * _robust(r * r, cfg)
+    w = torch.where(ok, w, torch.zeros((), dtype=dtype))
+    r = torch.where(ok, r, torch.zeros((), dtype=dtype))
+    J = torch.cat([n, torch.linalg.cross(q, n, dim=-1)], -1)  # (B, N, 6): [d/drho, d/dphi]
+    Jw = J * w[..., None]
+    H = Jw.transpose(1, 2) @ J
+    g = (Jw * r[..., None]).sum(1)
     return H, g, w
 
 
+def _skew_sum(s: torch.Tensor) -> torch.Tensor:
+    """``[s]x`` (B, 3, 3) of vectors s (B, 3)."""
+    z = torch.zeros_like(s[:, 0])
+    return torch.stack([torch.stack([z, -s[:, 2], s[:, 1]], -1),
+                        torch.stack([s[:, 2], z, -s[:, 0]], -1),
+                        torch.stack([-s[:, 1], s[:, 0], z], -1)], 1)
+
+
+def _point_normal_equations(q: torch.Tensor, e: torch.Tensor, w: torch.Tensor
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Point-to-point IRLS normal equations in closed form (differentiable by autograd).
+
+    q (B, 3, N) map-frame scan points, e (B, 3, N) residuals ``q - m`` (zero where there is no
+    correspondence), w (B, N) weights. With ``J_i = [I, -[q_i]x]`` (3 x 6, ``[rho, phi]``):
+    ``H = sum_i w_i J_i^T J_i = [[sum w I, -[s]x], [[s]x, sum w |q|^2 I - sum w q q^T]]`` with
+    ``s = sum_i w_i q_i``, and ``g = sum_i w_i J_i^T e_i = [sum w e, sum w q x e]``. The same
+    numbers as the per-point 3x3 products, without (B, N, 3, 3) intermediates (measured
+    docs/methods.md, "Per-target settings")."""
+    dtype = q.dtype
+    qw = q * w[:, None]  # (B, 3, N)
+    sw = w.sum(1)
+    eye = torch.eye(3, dtype=dtype)
+    Sx = _skew_sum(qw.sum(2))
+    Hpp = (qw * q).sum((1, 2))[:, None, None] * eye - qw @ q.transpose(1, 2)
+    H = torch.cat([torch.cat([sw[:, None, None] * eye, -Sx], 2), torch.cat([Sx, Hpp], 2)], 1)
+    g = torch.cat([(e * w[:, None]).sum(2), _cross(qw, e).sum(2)], 1)
+    return H, g
+
+
+def _gicp_normal_equations(q: torch.Tensor, e: torch.Tensor, ok: torch.Tensor, R: torch.Tensor,
+                           cov_m: torch.Tensor, cov_s: torch.Tensor | None
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Generalized-ICP normal equations (Segal, Haehnel and Thrun, RSS 2009), as small_gicp's GICP
+    factor linearises them (Koide, JOSS 2024): residual ``e_i = q_i - m_i`` (map frame), weight
+    matrix ``M_i = (C_m,i + R C_s,i R^T)^-1`` evaluated at the current rotation and held in the
+    Gauss-Newton step (not differentiated in ``H``; its value and its dependence on R and on the
+    scan covariances do enter ``g``, so the implicit gradient is that of small_gicp's fixed point
+    ``sum_i J_i^T M_i e_i = 0``).
+
+    Args:
+        q, e: (B, 3, N) map-frame scan points and residuals (zero without a correspondence).
+        ok: (B, N) the point has a correspondence within the gate.
+        R: (B, 3, 3) current rotation.
+        cov_m: (B, 6, N) map covariances of the correspondences, entries ``xx yy zz xy xz yz``.
+        cov_s: (B, 6, N) scan covariances (sensor frame), same layout.
+
+    Returns H (B, 6, 6) ``sum J^T M J``, g (B, 6) ``sum J^T M e`` with ``J_i = [I, -[q_i]x]`` and
+    the inlier indicator (B, N) as weights.
+    """
+    if cov_s is None:
+        raise InputError("GICP needs the scan covariances")
+    dtype = q.dtype
+    Cm, Cs = _sym3(cov_m), _sym3(cov_s)  # (B, N, 3, 3)
+    Rb = R[:, None]
+    C = Cm + Rb @ Cs @ Rb.transpose(-1, -2)
+    eye = torch.eye(3, dtype=dtype)
+    C = torch.where(ok[..., None, None], C, eye)  # no correspondence: any invertible matrix
+    M = torch.linalg.inv(C) * ok[..., None, None]
+    qt = q.transpose(1, 2)  # (B, N, 3)
+    Qx = hat(qt)  # (B, N, 3, 3)
+    MQ = M @ Qx
+    Me = (M @ e.transpose(1, 2)[..., None])[..., 0]  # (B, N, 3)
+    Hrr = M.sum(1)
+    Hrp = -MQ.sum(1)
+    Hpp = -(Qx @ MQ).sum(1)
+    H = torch.cat([torch.cat([Hrr, Hrp], 2), torch.cat([Hrp.transpose(1, 2), Hpp], 2)], 1)
+    g = torch.cat([Me.sum(1), torch.linalg.cross(qt, Me, dim=-1).sum(1)], 1)
+    return H, g, ok.to(dtype)
+
+
+def _sym3(c: torch.Tensor) -> torch.Tensor:
+    """Symmetric 3x3 matrices (B, N, 3, 3) from their entries (B, 6, N) ``xx yy zz xy xz yz``."""
+    xx, yy, zz, xy, xz, yz = c.unbind(1)
+    return torch.stack([torch.stack([xx, xy, xz], -1), torch.stack([xy, yy, yz], -1),
+                        torch.stack([xz, yz, zz], -1)], -2)
+
+
 def _implicit_pose(p: torch.Tensor, R0: torch.Tensor, t0: torch.Tensor, nn: _Correspondences,
-                   query_bound: float, cfg: ICPConfig, mode: Mode
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
+                   query_bound: float, cfg: ICPConfig, mode: Mode,
+                   scan_cov: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The final pose (R0 (B, 3, 3), t0 (B, 3), no graph) with the implicit-function gradient of
     the scan points p (B, 3, N).
 
@@ -485,14 +623,15 @@ def _implicit_pose(p: torch.Tensor, R0: torch.Tensor, t0: torch.Tensor, nn: _Cor
     B = p.shape[0]
     on = torch.ones(B, dtype=torch.bool)
     x = p.detach()
+    cov_x = None if scan_cov is None else scan_cov.detach()
 
     def g_of(dl: torch.Tensor) -> torch.Tensor:
-        return _linearise(x, *_left_update(dl, R0, t0), nn, on, query_bound, cfg, mode)[1]
+        return _linearise(x, *_left_update(dl, R0, t0), nn, on, query_bound, cfg, mode, cov_x)[1]
 
     with torch.enable_grad():
         A = torch.autograd.functional.jacobian(g_of, torch.zeros(B, 6, dtype=p.dtype))  # (B,6,B,6)
     A = A[torch.arange(B), :, torch.arange(B), :]  # per-sample blocks (B, 6, 6)
-    _, g, _ = _linearise(p, R0, t0, nn, on, query_bound, cfg, mode)
+    _, g, _ = _linearise(p, R0, t0, nn, on, query_bound, cfg, mode, scan_cov)
     delta = _solve(A, g, cfg)
     return _left_update(delta - delta.detach(), R0, t0)
 

@@ -14,34 +14,49 @@ registration step against a *given* map, through the pybind classes of ``kiss_ic
 
 The odometry front end (deskewing, scan voxelisation, adaptive threshold, map update) is not used.
 
-Settings come from an ICP preset (``cfg``, an :class:`~icpbench.targets.icp.ICPConfig`, the same
-presets as ``p2plane`` and ``open3d``) unless given explicitly:
+Settings: KISS-ICP's own choices for a scan-to-map registration (KISS-ICP paper, Vizzo et al.
+RA-L 2023, Sec. III, and the defaults of its ``KISSConfig``), scaled with the preset's length unit
+through the voxel size (``cfg`` is an :class:`~icpbench.targets.icp.ICPConfig`, the same presets
+as ``p2plane`` and ``open3d``):
 
-=======================  ===============================================================================
-KISS setting             default derived from the preset
-=======================  ===============================================================================
-``voxel_size``           ``cfg.d_max / 5``: ``lidar`` 1.0 m (KISS's own choice for 100 m sensors),
-                         ``objects`` 0.06. KISS looks for neighbours only in the 27 voxels around a
-                         query, so whatever ``max_corr`` is, one iteration reaches 1-2 voxels: the
-                         voxel bounds the capture range (docs/methods.md, "Black-box targets"). The ratio 5
-                         keeps KISS's lidar voxel; on ``objects`` voxels of 0.05-0.15 all registered
-                         the clean test split to a median 0.003, the lidar-scale settings (voxel 1,
-                         kernel 1) only to 0.018. The voxel also thins the map: KISS keeps at most
-                         ``max_points_per_voxel`` points per voxel, at least
-                         ``voxel / sqrt(max_points)`` apart (0.22 m for lidar, 0.013 for objects).
-``max_corr``             ``min(cfg.d_max, voxel_size)``: lidar 1.0 m, objects 0.06. Pairs farther than
-                         a voxel are rarely found anyway, and with ``max_corr <= voxel_size`` the
-                         inlier count below is exact.
-``kernel``               ``cfg.cauchy_c ** 2``: lidar 1.0, objects 0.0225. KISS's weight
-                         ``kernel^2 / (kernel + r^2)^2 = (1 / (1 + r^2 / kernel))^2`` is the *square* of
-                         a Cauchy weight of scale ``sqrt(kernel)``, so this gives KISS the preset's
-                         residual scale c (at ``r = c`` the weight is 1/4 instead of Cauchy's 1/2).
-                         ``cauchy_c=None``: ``kernel = 1e6 * max_corr^2``, weights within 2e-6 of 1.
-``convergence``          ``cfg.tol``: KISS tests ``||dx||`` (m and rad mixed), the same quantity.
-``max_iterations``       500 (KISS's own; *not* the preset's cap: point-to-point needs 17-90 iterations
-                         here, and a 30-iteration cap stops 0.2-0.3 m short on the lidar scene).
-``min_correspondences``  ``cfg.min_correspondences``.
-=======================  ===============================================================================
+=========================  ===========================================================================
+KISS setting               default, and why
+=========================  ===========================================================================
+``voxel_size``             ``cfg.d_max / 5``: ``lidar`` 1.0 m, KISS's ``max_range / 100`` for its
+                           default 100 m range (the simulated sensors reach 100-120 m); ``objects``
+                           0.06 (voxels of 0.05-0.15 all registered the clean objects to a median
+                           0.003). KISS looks for neighbours only in the 27 voxels around a query, so
+                           the voxel also bounds the capture range (docs/methods.md, "Black-box
+                           targets").
+``max_points_per_voxel``   20 (KISS's default): the map keeps points at least
+                           ``voxel / sqrt(20)`` apart (0.22 m for lidar; the lidar-sim maps are
+                           0.25 m voxel samples, so little is dropped).
+``initial_threshold``      ``2 * voxel_size`` (lidar: 2.0 m, KISS's ``initial_threshold``). KISS's
+                           adaptive threshold ``sigma`` starts there and only falls once the
+                           odometry has seen motions above ``min_motion_th`` (0.1 m); one
+                           registration against a given map has no motion history, so ``sigma``
+                           stays at its start. (The library defaults of ``_align_points_to_map``
+                           are not used: it has none.)
+``max_corr``               ``3 * sigma`` (KISS's rule; lidar 6.0 m). Before 2026-11-26 this target
+                           used ``min(d_max, voxel)`` = 1.0 m, a third of KISS's choice; pairs
+                           beyond a voxel are only found within the 27 voxels.
+``kernel``                 ``sigma / 3`` (the paper's rule, Sec. III-C; lidar 0.667). kiss-icp
+                           1.2.2 and later pass ``sigma`` itself (commit c9f6931); on the 48 clean
+                           lidar-sim test scans that gave 100% converged, median 3.0 cm, mean 27 cm
+                           against 98%, 2.2 cm, 25 cm with ``sigma / 3`` (docs/methods.md). KISS's
+                           weight ``kernel^2 / (kernel + r^2)^2`` is Geman-McClure's; the replica
+                           (:mod:`icpbench.targets.kiss_replica`) writes it as
+                           ``1 / (1 + r^2 / c^2)^2`` with ``c = sqrt(kernel)``. Before 2026-11-26:
+                           ``cauchy_c^2`` = 1.0.
+``convergence``            ``cfg.tol`` (1e-4, KISS's default): KISS tests ``||dx||`` (m and rad
+                           mixed), the same quantity as our ICP.
+``max_iterations``         500 (KISS's default; *not* the preset's cap: point-to-point needs 30-500
+                           iterations on lidar-sim, highways the most).
+``min_correspondences``    ``cfg.min_correspondences``.
+=========================  ===========================================================================
+
+Not used: KISS's odometry front end (deskewing, the scan's voxelisation at 0.5 and 1.5 voxel,
+the map update). Every target registers the very scan an attack produced, all of its points.
 
 Measured with the defaults (1 thread, this repo's 2-core machine): the ``lidar`` preset on
 :func:`icpbench.datasets.synthetic_scene.scene_sample` (2,000-point scans, 20,000-point map,
@@ -60,10 +75,8 @@ What KISS does not expose, and how this target obtains it:
   ``log(T_new T_old^-1)``; the loop stops exactly where KISS's would, which gives the exact
   iteration count and ``converged = ||dx|| < convergence`` before the cap.
 * **inlier_fraction**: KISS reports no correspondences. At the final pose the scan points whose
-  nearest stored map point (SciPy KD-tree over ``_point_cloud()``) lies within
-  ``min(max_corr, voxel_size)`` are counted. Such a neighbour always lies in the 27 voxels that
-  KISS searches, so this is exact when ``max_corr <= voxel_size`` (the default) and a lower bound
-  of KISS's count otherwise.
+  KISS neighbour (:class:`VoxelNeighbours`: KISS's 27-voxel search over ``_point_cloud()``,
+  replicated) lies closer than ``max_corr`` are counted, exactly as KISS's data association does.
 * **singular**: the 6x6 point-to-point Gauss-Newton matrix with KISS's weights is rebuilt from
   those pairs and checked as in :mod:`icpbench.targets.icp`.
 
@@ -86,10 +99,10 @@ from typing import Any, ClassVar
 import kiss_icp
 import numpy as np
 from kiss_icp.pybind import kiss_icp_pybind as kp
-from scipy.spatial import cKDTree
 
 from icpbench.core.errors import InputError, PluginUnavailableError
 from icpbench.core.types import validate_cloud
+from icpbench.targets.base import Target
 from icpbench.targets.blackbox import (
     BlackBoxTarget,
     OneResult,
@@ -103,8 +116,8 @@ from icpbench.targets.icp import ICPConfig, config_dict
 TESTED_VERSIONS = ((1, 2), (1, 4))  # [1.2, 1.4)
 #: default voxel_size = d_max / VOXEL_PER_DMAX (module docstring).
 VOXEL_PER_DMAX = 5.0
-#: with cauchy_c=None: kernel = NO_KERNEL_SCALE * max_corr^2 (weights ~ 1 within max_corr).
-NO_KERNEL_SCALE = 1e6
+#: default initial_threshold = THRESHOLD_PER_VOXEL * voxel_size (KISS: 2.0 m at its 1.0 m voxel).
+THRESHOLD_PER_VOXEL = 2.0
 _threads_fixed: int | None = None  # thread count fixed by the first _Registration of this module
 
 
@@ -122,19 +135,112 @@ def _check_version(version: str) -> None:
 _check_version(kiss_icp.__version__)
 
 
+class VoxelNeighbours:
+    """KISS-ICP's correspondence search in NumPy: the nearest of the points stored in the 27 voxels
+    around a query (``VoxelHashMap::GetClosestNeighbor``), exact, vectorised.
+
+    Every map point within ``voxel_size`` of a query lies in those 27 voxels, so for such queries
+    the result is the exact nearest neighbour; farther ones may get a farther point, or none.
+
+    Args:
+        points: (K, 3) float64 points kept by KISS's voxel map (map frame).
+        voxel_size: KISS's voxel edge; voxel of x is ``floor(x / voxel_size)`` per axis.
+    """
+
+    _SHIFTS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
+                       dtype=np.int64)
+    _CHUNK = 2048  # queries per block (27 x cap candidates each)
+    _RANGE = 1 << 20  # voxel coordinates are encoded within +-2^20
+
+    def __init__(self, points: np.ndarray, voxel_size: float) -> None:
+        self.points = np.ascontiguousarray(points, dtype=np.float64)
+        self.voxel_size = float(voxel_size)
+        vox = np.floor(self.points / self.voxel_size)
+        if np.any(np.abs(vox) >= self._RANGE):
+            raise InputError(f"map points must lie within {self._RANGE} voxels of the origin")
+        codes = self._codes(vox.astype(np.int64))
+        order = np.argsort(codes, kind="stable")
+        self.keys, start, count = np.unique(codes[order], return_index=True, return_counts=True)
+        cap = int(count.max()) if count.size else 1
+        slots = np.full((self.keys.size, cap), -1, dtype=np.int64)  # point rows per voxel
+        rank = np.arange(order.size) - np.repeat(start, count)
+        slots[np.repeat(np.arange(self.keys.size), count), rank] = order
+        self.slots = slots
+
+    @staticmethod
+    def _codes(v: np.ndarray) -> np.ndarray:
+        """One int64 per voxel (K, 3) (each coordinate within +-2^20 voxels)."""
+        off = 1 << 20
+        return ((v[:, 0] + off) << 42) | ((v[:, 1] + off) << 21) | (v[:, 2] + off)
+
+    def query(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (Q,) and row (Q,) of KISS's neighbour of each query (Q, 3); ``inf`` and K
+        where none of the 27 voxels holds a point (or the query is not finite, or farther than
+        2^20 voxels from the origin, where no map point is)."""
+        q = np.asarray(q, dtype=np.float64)
+        Q, K = q.shape[0], self.points.shape[0]
+        dist, idx = np.full(Q, np.inf), np.full(Q, K, dtype=np.int64)
+        with np.errstate(invalid="ignore", over="ignore"):  # far queries find nothing anyway
+            ok = np.flatnonzero((np.abs(q) < (self._RANGE - 2) * self.voxel_size).all(axis=1))
+        pts = np.vstack([self.points, np.full((1, 3), np.inf)])
+        for lo in range(0, ok.size, self._CHUNK):
+            sel = ok[lo:lo + self._CHUNK]
+            vox = np.floor(q[sel] / self.voxel_size).astype(np.int64)
+            codes = self._codes((vox[:, None, :] + self._SHIFTS[None]).reshape(-1, 3))
+            pos = np.minimum(np.searchsorted(self.keys, codes), self.keys.size - 1)
+            hit = self.keys[pos] == codes
+            cand = np.where(hit[:, None], self.slots[pos], -1).reshape(sel.size, -1)
+            cand = np.where(cand < 0, K, cand)
+            d2 = ((pts[cand] - q[sel][:, None, :]) ** 2).sum(-1)
+            j = np.argmin(d2, axis=1)
+            best = d2[np.arange(sel.size), j]
+            found = np.isfinite(best)
+            dist[sel[found]] = np.sqrt(best[found])
+            idx[sel[found]] = cand[np.arange(sel.size), j][found]
+        return dist, idx
+
+
 @dataclass(frozen=True)
 class KissMap:
-    """A map prepared for KISS-ICP: the voxel hash map and a KD-tree over its stored points."""
+    """A map prepared for KISS-ICP: the voxel hash map and KISS's 27-voxel search over its points."""
 
     voxel_map: Any  # kiss_icp_pybind._VoxelHashMap
     points: np.ndarray  # (K, 3) float64 points kept by the voxel map (K <= M), map frame
-    tree: cKDTree
+    search: VoxelNeighbours
+
+
+def kept_points(map_points: np.ndarray, voxel_size: float, max_points_per_voxel: int
+                ) -> tuple[Any, np.ndarray]:
+    """KISS's voxel hash map of the (M, 3) map (map frame) and the (K, 3) float64 points it keeps
+    (at most ``max_points_per_voxel`` per voxel, at least ``voxel / sqrt(max)`` apart)."""
+    pts = validate_cloud(map_points, "map", min_points=6).astype(np.float64)
+    vmap = kp._VoxelHashMap(voxel_size=voxel_size, max_distance=np.inf,
+                            max_points_per_voxel=max_points_per_voxel)
+    vmap._add_points(kp._Vector3dVector(np.ascontiguousarray(pts)))
+    return vmap, np.asarray(vmap._point_cloud(), dtype=np.float64).reshape(-1, 3)
 
 
 def _positive(name: str, value: float) -> float:
     if not (np.isfinite(value) and value > 0):
         raise InputError(f"{name} must be a positive number, got {value}")
     return float(value)
+
+
+def kiss_settings(cfg: ICPConfig, voxel_size: float | None, initial_threshold: float | None,
+                  max_corr: float | None, kernel: float | None
+                  ) -> tuple[float, float, float, float]:
+    """KISS's ``(voxel_size, sigma, max_corr, kernel)`` from the preset ``cfg`` and the explicit
+    values given (None: the default of the module docstring's table)."""
+    if voxel_size is None:
+        if cfg.d_max is None:
+            raise InputError("KISS-ICP derives its voxel size from d_max: set d_max or voxel_size")
+        voxel_size = cfg.d_max / VOXEL_PER_DMAX
+    voxel_size = _positive("voxel_size", voxel_size)
+    sigma = _positive("initial_threshold", THRESHOLD_PER_VOXEL * voxel_size
+                      if initial_threshold is None else initial_threshold)
+    max_corr = _positive("max_corr", 3.0 * sigma if max_corr is None else max_corr)
+    kernel = _positive("kernel", sigma / 3.0 if kernel is None else kernel)
+    return voxel_size, sigma, max_corr, kernel
 
 
 class KissICPTarget(BlackBoxTarget):
@@ -146,9 +252,11 @@ class KissICPTarget(BlackBoxTarget):
         voxel_size: voxel edge of the map (preset length units); bounds the neighbour search to 27
             voxels. Default ``d_max / 5``.
         max_points_per_voxel: points KISS keeps per voxel.
-        max_corr: maximum correspondence distance. Default ``min(d_max, voxel_size)``.
+        initial_threshold: KISS's adaptive threshold ``sigma`` (its start value, see the module
+            docstring). Default ``2 * voxel_size``.
+        max_corr: maximum correspondence distance. Default ``3 * sigma``.
         kernel: KISS's robust-kernel parameter (weight ``kernel^2 / (kernel + r^2)^2``, units of
-            r^2). Default ``cauchy_c ** 2``.
+            r^2). Default ``sigma / 3``.
         max_iterations: iteration cap (KISS's default 500; the preset's cap is not used).
         threads: KISS/oneTBB threads, fixed process-wide by the first registration object.
         **overrides: ``ICPConfig`` fields replaced before deriving the defaults (e.g. ``d_max=2.0``,
@@ -161,21 +269,12 @@ class KissICPTarget(BlackBoxTarget):
 
     def __init__(self, preset: ICPConfig | str | None = "lidar", *,
                  voxel_size: float | None = None, max_points_per_voxel: int = 20,
-                 max_corr: float | None = None, kernel: float | None = None,
-                 max_iterations: int = 500, threads: int = 1, **overrides: Any) -> None:
+                 initial_threshold: float | None = None, max_corr: float | None = None,
+                 kernel: float | None = None, max_iterations: int = 500, threads: int = 1,
+                 **overrides: Any) -> None:
         cfg = self.config = resolve_preset(preset, overrides, "KISS-ICP")
-        if voxel_size is None:
-            if cfg.d_max is None:
-                raise InputError("KISS-ICP derives its voxel size from d_max: set d_max or voxel_size")
-            voxel_size = cfg.d_max / VOXEL_PER_DMAX
-        self.voxel_size = _positive("voxel_size", voxel_size)
-        if max_corr is None:
-            max_corr = min(cfg.d_max or np.inf, self.voxel_size)
-        self.max_corr = _positive("max_corr", max_corr)
-        if kernel is None:
-            kernel = (cfg.cauchy_c**2 if cfg.cauchy_c is not None
-                      else NO_KERNEL_SCALE * self.max_corr**2)
-        self.kernel = _positive("kernel", kernel)
+        self.voxel_size, self.sigma, self.max_corr, self.kernel = kiss_settings(
+            cfg, voxel_size, initial_threshold, max_corr, kernel)
         if max_points_per_voxel < 1 or max_iterations < 1 or threads < 0:
             raise InputError("max_points_per_voxel and max_iterations must be >= 1, threads >= 0")
         global _threads_fixed
@@ -196,12 +295,8 @@ class KissICPTarget(BlackBoxTarget):
     # -- Target API -------------------------------------------------------------------------
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray | None = None) -> KissMap:
         """Build the voxel hash map of the (M, 3) map (map frame); normals are not used."""
-        pts = validate_cloud(map_points, "map", min_points=6).astype(np.float64)
-        vmap = kp._VoxelHashMap(voxel_size=self.voxel_size, max_distance=np.inf,
-                                max_points_per_voxel=self.max_points_per_voxel)
-        vmap._add_points(kp._Vector3dVector(np.ascontiguousarray(pts)))
-        kept = np.asarray(vmap._point_cloud(), dtype=np.float64).reshape(-1, 3)
-        return KissMap(voxel_map=vmap, points=kept, tree=cKDTree(kept))
+        vmap, kept = kept_points(map_points, self.voxel_size, self.max_points_per_voxel)
+        return KissMap(voxel_map=vmap, points=kept, search=VoxelNeighbours(kept, self.voxel_size))
 
     def settings(self) -> dict[str, Any]:
         return {
@@ -209,6 +304,7 @@ class KissICPTarget(BlackBoxTarget):
             "version": kiss_icp.__version__,
             "threads": self.threads,
             "voxel_size": self.voxel_size,
+            "initial_threshold": self.sigma,
             "max_points_per_voxel": self.max_points_per_voxel,
             "max_corr": self.max_corr,
             "kernel": self.kernel,
@@ -217,6 +313,15 @@ class KissICPTarget(BlackBoxTarget):
             "min_correspondences": self.min_correspondences,
             "icp_config": config_dict(self.config),
         }
+
+    def replica(self) -> Target:
+        """The differentiable replica with these settings (:mod:`icpbench.targets.kiss_replica`)."""
+        from icpbench.targets.kiss_replica import KissICPReplica
+
+        return KissICPReplica(self.config, voxel_size=self.voxel_size,
+                              max_points_per_voxel=self.max_points_per_voxel,
+                              initial_threshold=self.sigma, max_corr=self.max_corr,
+                              kernel=self.kernel, max_iterations=self.max_iterations)
 
     # -- internals --------------------------------------------------------------------------
     def _register_one(self, scan: np.ndarray, target: KissMap, T0: np.ndarray) -> OneResult:
@@ -238,7 +343,7 @@ class KissICPTarget(BlackBoxTarget):
                              T: np.ndarray) -> tuple[int, np.ndarray]:
         """Inlier count at pose T and the KISS-weighted 6x6 point-to-point GN matrix ([rho, phi])."""
         q = pts @ T[:3, :3].T + T[:3, 3]
-        d, _ = target.tree.query(q, k=1, distance_upper_bound=min(self.max_corr, self.voxel_size))
-        ok = np.isfinite(d)
+        d, _ = target.search.query(q)
+        ok = d < self.max_corr
         w = self.kernel**2 / (self.kernel + d[ok] ** 2) ** 2
         return int(ok.sum()), point_to_point_hessian(q[ok], w)

@@ -67,6 +67,7 @@ import small_gicp
 
 from icpbench.core.errors import InputError
 from icpbench.core.types import validate_cloud
+from icpbench.targets.base import Target
 from icpbench.targets.blackbox import BlackBoxTarget, OneResult, resolve_preset
 from icpbench.targets.icp import ICPConfig, config_dict
 
@@ -153,6 +154,22 @@ class SmallGICPTarget(BlackBoxTarget):
             "min_correspondences": self.min_correspondences,
             "icp_config": config_dict(self.config),
         }
+
+    def replica(self) -> Target | None:
+        """The differentiable target that reproduces this one: GICP ->
+        :class:`~icpbench.targets.gicp_replica.SmallGICPReplica`, ICP -> ``p2point`` without a
+        kernel (same cost and gate; small_gicp's LM path and looser stop aside), PLANE_ICP -> None
+        (its residual ``n * r`` element-wise has no counterpart here)."""
+        if self.registration_type == "GICP":
+            from icpbench.targets.gicp_replica import SmallGICPReplica
+
+            return SmallGICPReplica(self.config, num_neighbors=self.num_neighbors,
+                                    threads=self.threads)
+        if self.registration_type == "ICP":
+            from icpbench.targets.p2point import PointToPointICP
+
+            return PointToPointICP(self.config.with_(cauchy_c=None))
+        return None
 
     # -- internals --------------------------------------------------------------------------
     def _register_one(self, scan: np.ndarray, target: SmallGICPMap, T0: np.ndarray) -> OneResult:

@@ -128,7 +128,12 @@ def test_open3d_settings_and_rejections():
     from icpbench.targets.open3d_icp import Open3DICP
 
     with pytest.raises(InputError, match="robust kernel"):
-        Open3DICP("lidar", mode="point")  # the preset has cauchy_c=1
+        Open3DICP("lidar", mode="point", cauchy_c=1.0)
+    with pytest.raises(InputError, match="robust kernel"):
+        Open3DICP(PRESETS["lidar"], mode="point")  # a config is used as given: it has c = 1
+    point = Open3DICP("lidar", mode="point").config  # point-to-point's own defaults
+    assert (point.cauchy_c, point.d_max, point.max_iterations) == (None, 1.0, 500)
+    assert Open3DICP("lidar", mode="point", d_max=2.0).config.d_max == 2.0
     with pytest.raises(InputError):
         Open3DICP("lidar", d_max=None)
     with pytest.raises(InputError):
@@ -229,10 +234,11 @@ def test_runner_builds_every_target_from_a_preset(ep, preset):
     if ep == "small-gicp":
         assert st["max_corr"] == d_max
         assert st["max_iterations"] == PRESETS[preset].max_iterations
-    if ep == "kiss-icp":
+    if ep == "kiss-icp":  # KISS's rules: sigma = 2 voxels, max_corr = 3 sigma, kernel = sigma / 3
         assert st["voxel_size"] == pytest.approx(d_max / 5)
-        assert st["max_corr"] == pytest.approx(d_max / 5)
-        assert st["kernel"] == pytest.approx(PRESETS[preset].cauchy_c ** 2)
+        assert st["initial_threshold"] == pytest.approx(2 * d_max / 5)
+        assert st["max_corr"] == pytest.approx(6 * d_max / 5)
+        assert st["kernel"] == pytest.approx(2 * d_max / 15)
         assert st["max_iterations"] == 500 and st["convergence"] == PRESETS[preset].tol
 
 
@@ -241,18 +247,20 @@ def test_kiss_derived_settings_and_overrides():
     from icpbench.targets.icp import icp_config
     from icpbench.targets.kiss import KissICPTarget
 
-    lid = KissICPTarget("lidar")  # KISS's own lidar settings: 1 m voxel, 1 m max_corr
-    assert (lid.voxel_size, lid.max_corr, lid.kernel) == (1.0, 1.0, 1.0)
+    lid = KissICPTarget("lidar")  # KISS's own settings for a 100 m sensor, first frame
+    assert (lid.voxel_size, lid.sigma, lid.max_corr) == (1.0, 2.0, 6.0)
+    assert lid.kernel == pytest.approx(2 / 3)
     assert lid.settings()["icp_config"]["d_max"] == 5.0
     obj = KissICPTarget("objects")
-    assert obj.voxel_size == pytest.approx(0.06) and obj.max_corr == pytest.approx(0.06)
-    assert obj.kernel == pytest.approx(0.0225)
+    assert obj.voxel_size == pytest.approx(0.06) and obj.max_corr == pytest.approx(0.36)
+    assert obj.kernel == pytest.approx(0.04)
     small = KissICPTarget("lidar", d_max=0.5)  # ICPConfig overrides feed the derivation
-    assert small.voxel_size == pytest.approx(0.1) and small.max_corr == pytest.approx(0.1)
-    wide = KissICPTarget("lidar", voxel_size=2.0)  # explicit values win; max_corr <= voxel
-    assert wide.max_corr == 2.0 and KissICPTarget("objects", voxel_size=2.0).max_corr == 0.3
-    flat = KissICPTarget("lidar", cauchy_c=None)  # no kernel: weights ~1 within max_corr
-    assert flat.kernel**2 / (flat.kernel + flat.max_corr**2) ** 2 > 1 - 1e-5
+    assert small.voxel_size == pytest.approx(0.1) and small.max_corr == pytest.approx(0.6)
+    sig = KissICPTarget("lidar", initial_threshold=0.5)  # explicit values win
+    assert (sig.max_corr, sig.kernel) == (1.5, pytest.approx(0.5 / 3))
+    assert KissICPTarget("lidar", max_corr=1.0, kernel=2.0).max_corr == 1.0
+    with pytest.raises(InputError):
+        KissICPTarget("lidar", initial_threshold=0.0)
     assert KissICPTarget(icp_config("objects", min_correspondences=50)).min_correspondences == 50
     assert KissICPTarget("lidar", tol=1e-6).convergence == 1e-6
     with pytest.raises(InputError, match="d_max"):

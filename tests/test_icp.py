@@ -261,10 +261,11 @@ def test_icp_result_does_not_depend_on_the_far_point_rule(monkeypatch):
     assert torch.equal(with_rule.iterations, without.iterations)
 
 
-def test_plane_backward_matches_autograd_of_the_formula():
+@pytest.mark.parametrize("kernel", ["cauchy", "huber", "geman_mcclure"])
+def test_plane_backward_matches_autograd_of_the_formula(kernel):
     """The hand-written backward of the point-to-plane normal equations equals autograd of the
-    same formula, with and without the Cauchy kernel, with and without a gradient on H."""
-    from icpbench.targets.icp import _PlaneNormalEquations
+    same formula, with and without the robust kernel, with and without a gradient on H."""
+    from icpbench.targets.icp import _PlaneNormalEquations, kernel_weight
 
     gen = torch.Generator().manual_seed(0)
     B, N = 3, 50
@@ -277,18 +278,18 @@ def test_plane_backward_matches_autograd_of_the_formula():
 
     def reference(c2):
         r = ((q - m) * n).sum(1)
-        w = mask / (1.0 + r * r / c2)
+        w = mask * kernel_weight(r * r, kernel, c2)[0]
         J = torch.cat([n, torch.linalg.cross(q, n, dim=1)], 1)
         return torch.einsum("bin,bjn,bn->bij", J, J, w), torch.einsum("bin,bn->bi", J, w * r), w
 
     for c2 in (0.7, float("inf")):
         H_ref, g_ref, w_ref = reference(c2)
-        H, g, w = _PlaneNormalEquations.apply(q, m, n, mask, c2)
+        H, g, w = _PlaneNormalEquations.apply(q, m, n, mask, c2, kernel)
         for got, want in ((H, H_ref), (g, g_ref), (w, w_ref)):
             torch.testing.assert_close(got, want.detach(), rtol=1e-12, atol=1e-12)
         for use_H in (True, False):
             H_ref, g_ref, _ = reference(c2)
-            H, g, _ = _PlaneNormalEquations.apply(q, m, n, mask, c2)
+            H, g, _ = _PlaneNormalEquations.apply(q, m, n, mask, c2, kernel)
             (want,) = torch.autograd.grad((g_ref * gg).sum() + use_H * (H_ref * gH).sum(), q)
             (got,) = torch.autograd.grad((g * gg).sum() + (H * gH).sum() if use_H
                                          else (g * gg).sum(), q)
