@@ -88,7 +88,7 @@ class EnsembleAttack(Attack):
     uses_surrogate: ClassVar[bool] = True
 
     def __init__(self, *, strict: bool = False, pgd_steps: int = 5, pgd_step_size: float = 0.1,
-                 sector_iterations: int = 4, queries: int = 30, **params: Any) -> None:
+                 sector_iterations: int = 4, queries: int = 20, **params: Any) -> None:
         for nm, v in (("pgd_steps", pgd_steps), ("sector_iterations", sector_iterations),
                       ("queries", queries)):
             if isinstance(v, bool) or int(v) != v or int(v) < 0:
