@@ -48,3 +48,22 @@ def test_plugin_runs_through_icpbench_run(plugin_path, tmp_path):
     assert (k["trans_err_xy"] - 0.5).abs().max() < 0.1
     j = df[df["attack"] == "jitter"]
     assert (j["disp_max"] - 0.5).abs().max() < 1e-9
+
+
+def test_plugin_target_joins_the_leaderboard(plugin_path, tmp_path):
+    """README, "Put your ICP on the leaderboard": a third-party target is ranked beside p2plane;
+    it has no replica, so the ensemble's PGD member is skipped on it (NaN), not faked."""
+    out = subprocess.run(
+        [sys.executable, "-m", "icpbench.cli", "leaderboard", "--add-target", "kabsch-icp",
+         "--variants", "p2plane (Cauchy)", "--samples", "2", "--dataset", "synthetic",
+         "--dataset-param", "n_scan=600", "--dataset-param", "n_map=6000", "--budgets", "0.5",
+         "--ensemble-param", "queries=2", "--ensemble-param", "pgd_steps=1",
+         "--ensemble-param", "sector_iterations=1", "--out", str(tmp_path), "--quiet"],
+        capture_output=True, text=True, env=_env(plugin_path))
+    assert out.returncode == 0, out.stderr
+    board = pd.read_csv(tmp_path / "leaderboard.csv")
+    assert set(board["variant"]) == {"kabsch-icp", "p2plane (Cauchy)"}
+    rows = pd.read_csv(tmp_path / "runs" / "kabsch-icp" / "results.csv")
+    ens = rows[rows["attack"] == "ensemble"]
+    assert ens["extra"].str.contains('"err_pgd": NaN').all()
+    assert (ens["trans_err_xy"] >= 0.5 * 0.5).all()
