@@ -250,7 +250,9 @@ def run(
             typer.echo(table1(df, "md", reference=reference, target=t, dataset=cfg.dataset))
         if len(cfg.targets) > 1:
             for b in cfg.budgets:
-                typer.echo(f"\nTransfer table (λ={b:g}, surrogate {cfg.surrogate}):\n")
+                typer.echo(f"\nAttacks x targets (λ={b:g}, each target attacked through itself or "
+                           f"its replica):\n" if cfg.surrogate == "self" else
+                           f"\nTransfer table (λ={b:g}, surrogate {cfg.surrogate}):\n")
                 typer.echo(render(transfer_frame(df, b), "md"))
         typer.echo(f"\nresults: {out_dir}/results.csv  manifest: {out_dir}/manifest.json")
     except KeyboardInterrupt:
