@@ -277,6 +277,7 @@ def table(
         table1,
         transfer_frame,
         transfer_vs_baseline,
+        write_table,
     )
     from icpbench.harness.results import load_results
 
@@ -300,8 +301,7 @@ def table(
         if out is None:
             typer.echo(text)
         else:
-            Path(out).parent.mkdir(parents=True, exist_ok=True)
-            Path(out).write_text(text)
+            write_table(out, text)
     except Exception as exc:
         _user_error(exc)
 

@@ -16,6 +16,7 @@ table of the same shape gives each cell's counts (runs / converged / pairs). The
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -441,33 +442,60 @@ def is_table_text(text: str) -> bool:
 
 
 def check_table_destination(path: str | Path) -> None:
-    """Refuse to write a table over a file of a results folder that is not a table of ours.
+    """Refuse any ``table --out`` destination but a new file or a table ``icpbench table`` wrote.
+
+    An existing file is overwritten only when it is a regular file (not a link) whose first line is
+    that of one of our tables (:func:`is_table_text`); a results folder's own files
+    (``results.csv``, ``manifest.json``, its lock) are refused even when reached through a link or
+    a linked folder.
 
     Raises:
-        InputError: ``path`` is a results folder's own file (``results.csv``, ``manifest.json``,
-            its lock), or an existing file in a results folder that is not a table written by
-            ``icpbench table``.
+        InputError: ``path`` is empty, a folder, a link, a results folder's own file, or an
+            existing file that is not a table written by ``icpbench table``.
     """
     from icpbench.harness.results import STORE_FILES, is_results_dir
 
     p = Path(path)
     if str(path) == "":
         raise InputError("--out is empty ('')")
+    if p.is_symlink():
+        raise InputError(f"refusing to write a table through the link {p} (it points at "
+                         f"{os.readlink(p)}); give the path of a new file or of a table written "
+                         "by `icpbench table`")
     if p.is_dir():
         raise InputError(f"--out {p} is a folder; give a file name, e.g. {p / 'table1.md'}")
-    if not is_results_dir(p.parent):
-        return
-    if p.name in STORE_FILES:
+    real = p.resolve()
+    if real.name in STORE_FILES and is_results_dir(real.parent):
         raise InputError(f"refusing to write a table over {p}: it is a file of the results folder "
-                         f"{p.parent} (written by `icpbench run`); choose another --out")
+                         f"{real.parent} (written by `icpbench run`); choose another --out")
     if p.exists():
+        if not p.is_file():
+            raise InputError(f"refusing to write a table over {p}: it is not a regular file")
         try:
-            ours = is_table_text(p.read_text(errors="strict"))
+            with open(p, "rb") as f:
+                ours = is_table_text(f.read(4096).decode("utf-8", errors="strict"))
         except (OSError, UnicodeDecodeError):
             ours = False
         if not ours:
-            raise InputError(f"refusing to overwrite {p}: it is in the results folder {p.parent} "
-                             "and is not a table written by `icpbench table`; choose another --out")
+            raise InputError(f"refusing to overwrite {p}: it is not a table written by "
+                             "`icpbench table` (only a new file or such a table is written); "
+                             "choose another --out")
+
+
+def write_table(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` after :func:`check_table_destination`, through a temporary file
+    in the same folder renamed over it (a link at ``path`` is refused, never followed)."""
+    p = Path(path)
+    check_table_destination(p)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "x") as f:
+            f.write(text)
+        check_table_destination(p)  # again, just before the rename
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def render(frame: pd.DataFrame, fmt: Format = "md") -> str:
