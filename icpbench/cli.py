@@ -149,6 +149,20 @@ def list_plugins() -> None:
         typer.echo(f"\n{reg.kind}s ({reg.group}):")
         typer.echo(tabulate(rows, headers=["name", "loads", "description / reason"],
                             tablefmt="simple"))
+    failed = registry.plugin_module_errors()
+    if failed:
+        typer.echo(f"\nplugin modules named in {registry.PLUGINS_ENV} that do not load:")
+        typer.echo(tabulate(sorted(failed.items()), headers=["module", "reason"],
+                            tablefmt="simple"))
+
+
+def _warn_plugin_modules() -> None:
+    """One line on stderr per ``ICPBENCH_PLUGINS`` module that did not load."""
+    from icpbench.core import registry
+
+    for mod, reason in registry.plugin_module_errors().items():
+        typer.echo(f"warning: {registry.PLUGINS_ENV} module {mod!r} did not load ({reason}); "
+                   "its plugins are not registered", err=True)
 
 
 @app.command()
@@ -239,6 +253,7 @@ def run(
                 merged.setdefault(n, {}).update(p)
             setattr(base, field_, merged)
         base.dataset_params = {**base.dataset_params, **_flat(dataset_param, "--dataset-param")}
+        _warn_plugin_modules()
         cfg = base.validate()
         _check_reference(reference, cfg.attacks)
         run_grid(cfg, out_dir, progress=not quiet)
@@ -399,8 +414,8 @@ def object_study(
             raise typer.BadParameter(f"--budget must be > 0, got {budget}")
         if objects < 1:
             raise typer.BadParameter(f"--objects must be >= 1, got {objects}")
-        if not 0 <= figure_objects <= objects:
-            raise typer.BadParameter(f"--figure-objects must be between 0 and --objects "
+        if not 1 <= figure_objects <= objects:  # the figure shows at least one object
+            raise typer.BadParameter(f"--figure-objects must be between 1 and --objects "
                                      f"({objects}), got {figure_objects}")
         models = dict(_kv(m, "--model") for m in model)
         rows, clouds, _ = study({k: str(v) for k, v in models.items()}, budget, objects,
@@ -471,7 +486,7 @@ def train(
 
     try:
         for flag, v, lo in (("--epochs", epochs, 0), ("--pretrain-epochs", pretrain_epochs, 0),
-                            ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 0),
+                            ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 1),
                             ("--batch-size", batch_size, 1), ("--threads", threads, 1)):
             if v is not None and v < lo:
                 raise typer.BadParameter(f"{flag} must be >= {lo}, got {v}")
@@ -493,8 +508,10 @@ def train(
             over["sector_iter"] = {**preset_si, **_flat(sector_iter_param, "--sector-iter-param")}
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
-        if budgets:
+        if budgets is not None:
             over["budgets"] = _floats(budgets, "--budgets")
+            if not over["budgets"]:
+                raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
         if dataset_param:
             over["dataset_params"] = _flat(dataset_param, "--dataset-param")
         card = run_training(train_config(preset, **over), out_dir, progress=not quiet,

@@ -4,6 +4,7 @@ test failed before the change it covers."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
@@ -13,6 +14,7 @@ import torch
 from typer.testing import CliRunner
 
 from icpbench.cli import app
+from icpbench.core.errors import InputError
 from icpbench.harness.results import RESULTS_FILE
 from icpbench.harness.runner import RunConfig, run
 
@@ -58,3 +60,198 @@ def test_table_out_never_writes_through_a_link(tiny_run, tmp_path, user_error):
     os.symlink(run_dir, linked_dir)
     user_error(_table(run_dir, linked_dir / RESULTS_FILE), "file of the results folder")
     assert (run_dir / RESULTS_FILE).read_bytes() == before
+
+
+# -- config files are checked as the flags are ------------------------------------------------------
+SMALL_CONFIG = ("dataset: synthetic\ndataset_params: {n_samples: 1, n_scan: 100, n_map: 1000}\n"
+                "attacks: none\nbudgets: [1]\n")
+
+
+@pytest.mark.parametrize(("text", "needle"), [
+    ("", "is empty; give at least one setting"),
+    ("# nothing but a comment\n", "is empty"),
+    ("budgets: [1, '5']\n", "setting 'budgets' must be"),
+    ("strict: 'no'\n", "setting 'strict' must be true or false, got 'no'"),
+    ("strict_files: 1\n", "setting 'strict_files' must be true or false"),
+    ("seeds: 1.5\n", "setting 'seeds' must be"),
+    ("dataset_params: abc\n", "setting 'dataset_params' must be a mapping"),
+    ("attack_params: [1, 2]\n", "setting 'attack_params' must be a mapping of plugin names"),
+    ("dataset_seed: -1\n", "setting 'dataset_seed' must be an integer from 0"),
+    ("samples: 0\n", "setting 'samples' must be an integer from 1"),
+    ("threads: '2'\n", "setting 'threads' must be an integer"),
+    ("attacks: 5\n", "setting 'attacks' must be"),
+])
+def test_config_file_fields_are_type_and_range_checked(tmp_path, text, needle, user_error):
+    cfg = tmp_path / "c.yaml"
+    # a small valid run first (PyYAML lets the later line of a key win), so that a bad value that is
+    # not refused runs in a second instead of starting the default grid
+    cfg.write_text((SMALL_CONFIG if text.strip() and not text.startswith("#") else "") + text)
+    out = tmp_path / "out"
+    res = cli.invoke(app, ["run", "--config", str(cfg), "--out", str(out), "--quiet"])
+    user_error(res, needle)
+    assert str(cfg) in res.output
+    assert not out.exists()
+
+
+def test_config_file_spellings_of_the_flags_mean_what_the_flags_mean(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("budgets: '15'\nseeds: 5\n")
+    got = RunConfig.from_file(cfg)
+    assert got.budgets == [15.0] and got.seeds == [5]
+    cfg.write_text("budgets: 2\nseeds: '0,1'\n")
+    got = RunConfig.from_file(cfg)
+    assert got.budgets == [2.0] and got.seeds == [0, 1]
+
+
+def test_a_seed_beyond_64_bits_is_refused_before_any_row(tmp_path, user_error):
+    out = tmp_path / "out"
+    res = cli.invoke(app, ["run", "--dataset", "synthetic", "--dataset-param", "n_samples=1",
+                           "--attacks", "none", "--budgets", "1", "--seed", str(2**64),
+                           "--out", str(out), "--quiet"])
+    user_error(res, "seeds (--seed) must be a non-empty list of integers from")
+    assert not (out / RESULTS_FILE).exists()
+
+
+def test_a_results_file_with_an_unreadable_seed_is_reported(tiny_run, tmp_path):
+    from icpbench.harness.results import load_results
+
+    run_dir = tmp_path / "r"
+    shutil.copytree(tiny_run, run_dir)
+    csv = run_dir / RESULTS_FILE
+    lines = csv.read_text().splitlines(keepends=True)
+    first = lines[1].split(",")
+    first[4] = str(2**64)
+    csv.write_text("".join([lines[0], ",".join(first), *lines[2:]]))
+    with pytest.raises(InputError, match="seeds must be 64-bit integers"):
+        load_results(run_dir)
+
+
+# -- train: checked before anything is written, locked, never a NaN checkpoint ---------------------
+TRAIN = ["train", "--preset", "quick-objects", "--train-samples", "2", "--eval-samples", "1",
+         "--batch-size", "2", "--pretrain-epochs", "0", "--epochs", "1", "--quiet",
+         "--dataset-param", "n_samples=4"]
+
+
+@pytest.mark.parametrize(("extra", "needle"), [
+    (["--budgets", ""], "--budgets has no numbers"),
+    (["--budgets", "1e300"], "budget must be a positive finite number of metres <="),
+    (["--eval-samples", "0"], "--eval-samples must be >= 1"),
+    (["--epochs", "0"], "--epochs + --pretrain-epochs must be >= 1"),
+    (["--lr", "1e30"], "--lr must be a number in [0, 1]"),
+    (["--generator-param", "bogus=1"], "unknown generator setting(s) 'bogus' (--generator-param); "
+                                        "valid: "),
+])
+def test_train_refuses_up_front_and_writes_nothing(tmp_path, extra, needle, user_error):
+    out = tmp_path / "gen"
+    user_error(cli.invoke(app, [*TRAIN, "--out", str(out), *extra]), needle)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_object_study_refuses_zero_figure_objects(user_error):
+    user_error(cli.invoke(app, ["object-study", "--model", "a=x.pt", "--figure-objects", "0"]),
+               "--figure-objects must be between 1 and --objects")
+
+
+def test_train_refused_by_its_data_leaves_no_configuration_behind(tmp_path, user_error):
+    out = tmp_path / "gen"
+    user_error(cli.invoke(app, [*TRAIN, "--out", str(out), "--dataset-param", "n_scan_points=3"]),
+               "n_scan_points")
+    assert not (out / "train_config.json").exists()
+
+
+def test_a_second_training_run_into_one_folder_is_refused(tmp_path):
+    from icpbench.harness.results import lock_results_dir
+    from icpbench.learning.training import train, train_config
+
+    cfg = train_config("quick-objects", train_samples=2, eval_samples=1, batch_size=2,
+                       pretrain_epochs=0, epochs=1, dataset_params={"n_samples": 4})
+    tmp_path.mkdir(exist_ok=True)
+    with lock_results_dir(tmp_path), pytest.raises(InputError, match="in use by another"):
+        train(cfg, tmp_path, progress=False)
+    assert not (tmp_path / "history.csv").exists()
+
+
+def test_diverging_training_says_so_and_keeps_no_nan_checkpoint(tmp_path, monkeypatch):
+    import icpbench.learning.training as tr
+
+    cfg = tr.train_config("quick-objects", train_samples=2, eval_samples=1, batch_size=2,
+                          pretrain_epochs=0, epochs=1, dataset_params={"n_samples": 4})
+    monkeypatch.setattr(tr, "reconstruction_loss", lambda *a: torch.tensor([float("nan")],
+                                                                           requires_grad=True))
+    with pytest.raises(InputError, match="training diverged in epoch 1 .*lower --lr"):
+        tr.train(cfg, tmp_path, progress=False)
+    assert not (tmp_path / "generator.pt").exists()
+
+
+def test_a_refused_run_leaves_no_manifest_so_the_corrected_command_runs(tmp_path, user_error):
+    out = tmp_path / "out"
+    base = ["run", "--dataset", "synthetic", "--attacks", "none", "--budgets", "1", "--out",
+            str(out), "--quiet", "--dataset-param", "n_scan=100", "--dataset-param", "n_map=1000"]
+    user_error(cli.invoke(app, [*base, "--dataset-param", "n_samples=0"]), "has no samples")
+    assert not (out / "manifest.json").exists()
+    res = cli.invoke(app, [*base, "--dataset-param", "n_samples=1"])
+    assert res.exit_code == 0, res.output
+
+
+# -- ICPBENCH_PLUGINS ------------------------------------------------------------------------------
+@pytest.mark.parametrize("value", ["no_such_icpbench_module", " , ", "icpbench_raising_plugin"])
+def test_bad_plugin_modules_are_reported_not_raised(tmp_path, monkeypatch, value):
+    from icpbench.core import registry
+
+    (tmp_path / "icpbench_raising_plugin.py").write_text("raise RuntimeError('broken plugin')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("ICPBENCH_PLUGINS", value)
+    for reg in (registry.attacks, registry.targets, registry.datasets, registry.corruptions):
+        monkeypatch.setattr(reg, "_discovered", False)
+    res = cli.invoke(app, ["list"])
+    assert res.exit_code == 0, res.output
+    assert "p2plane" in res.output
+    if value.strip(", "):
+        assert "ICPBENCH_PLUGINS that do not load" in res.output and value in res.output
+        with pytest.raises(InputError, match=f"unknown attack 'mine'.*ICPBENCH_PLUGINS module "
+                                             f"'{value}' did not load"):
+            registry.attacks.get("mine")
+    res = cli.invoke(app, ["run", "--dataset", "synthetic", "--dataset-param", "n_samples=1",
+                           "--dataset-param", "n_scan=100", "--dataset-param", "n_map=1000",
+                           "--attacks", "none", "--budgets", "1", "--quiet",
+                           "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+
+
+# -- user text in paths ------------------------------------------------------------------------------
+def test_user_text_never_leaves_its_folder(tmp_path):
+    from icpbench.analysis.danger_map import write_maps
+    from icpbench.core.filenames import safe_component
+    from icpbench.harness.results import load_results
+
+    out = tmp_path / "a" / "b" / "maps"
+    df = load_results(_run_with_hostile_pass(tmp_path))
+    write_maps(df, "none", 1.0, out)
+    written = {p.resolve() for p in tmp_path.rglob("*") if p.is_file()}
+    assert not any("ESCAPED" in str(p) and out.resolve() not in p.parents for p in written)
+    assert any("ESCAPED" in p.name for p in out.iterdir())
+    for bad in ("../../x", "a/b", "..", ".hidden"):
+        name = safe_component(bad)
+        assert "/" not in name and not name.startswith(".")
+
+
+def _run_with_hostile_pass(tmp_path: Path) -> Path:
+    """A results folder whose rows carry route metadata with a hostile pass name."""
+    run_dir = tmp_path / "run"
+    run(RunConfig(**SYN, attacks=["none"], budgets=[1.0], samples=2), run_dir, progress=False)
+    csv = run_dir / RESULTS_FILE
+    import pandas as pd
+
+    df = pd.read_csv(csv, keep_default_na=False)
+    df["meta"] = [json.dumps({"frame": i, "x": float(i), "y": 0.0, "pass": "../../../ESCAPED"})
+                  for i in range(len(df))]
+    df.to_csv(csv, index=False)
+    return run_dir
+
+
+@pytest.mark.parametrize("seq", ["../../../ESCAPED", "a/b", ".."])
+def test_kitti_sequence_must_be_a_plain_name(tmp_path, seq):
+    from icpbench.datasets.kitti import KittiDataset
+
+    with pytest.raises(InputError, match="KITTI setting sequence must be a plain name"):
+        KittiDataset(tmp_path, sequence=seq)

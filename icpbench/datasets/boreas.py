@@ -39,6 +39,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from icpbench.core.errors import InputError
+from icpbench.core.filenames import plain_name
 from icpbench.core.se3 import se3_exp
 from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
@@ -215,7 +216,8 @@ class BoreasDataset(Dataset):
             repeats = [repeats]
         if repeats is None:
             repeats = sorted(p.name for p in root.glob("boreas-*") if p.is_dir() and p.name != teach)
-        repeats = list(repeats)
+        repeats = [plain_name(r, "Boreas setting repeats") for r in repeats]
+        teach = plain_name(teach, "Boreas setting teach")
         if not repeats:
             raise InputError(f"no repeat sequences: {root} holds no boreas-* folder besides {teach}")
         if teach in repeats:

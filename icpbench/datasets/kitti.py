@@ -27,6 +27,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from icpbench.core.errors import InputError
+from icpbench.core.filenames import plain_name
 from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
@@ -115,6 +116,7 @@ class KittiDataset(Dataset):
                  normal_radius_m: float = 1.0, offset_trans_m: float = 0.3,
                  offset_rot_deg: float = 10.0, cache_dir: str | Path | None = None) -> None:
         root = Path(root)
+        sequence = plain_name(sequence, "KITTI setting sequence")
         if not root.is_dir():
             raise InputError(f"KITTI root {root} is not a folder")
         seq_dir = root if (root / "velodyne").is_dir() else root / "sequences" / str(sequence)

@@ -222,8 +222,12 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     df = df[~incomplete].copy()
     if df.empty:
         raise InputError(f"{p} holds no complete result rows ({n_incomplete} incomplete)")
-    df["seed"] = df["seed"].astype(int)
-    df["budget"] = df["budget"].astype(float)
+    try:
+        df["seed"] = df["seed"].astype("int64")
+        df["budget"] = df["budget"].astype(float)
+    except (ValueError, OverflowError, TypeError) as exc:
+        raise InputError(f"{p} holds a seed or budget that is not a number icpbench can read "
+                         f"(seeds must be 64-bit integers: {exc})") from exc
     n_before = len(df)
     df = df.drop_duplicates(list(KEY_COLUMNS), keep="last").reset_index(drop=True)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])

@@ -49,6 +49,7 @@ from icpbench.harness.results import (
     read_manifest,
     write_json_atomic,
 )
+from icpbench.harness.settings import SEED_MAX, SEED_MIN, check_run_fields, seed_ok
 from icpbench.targets.base import Target
 
 
@@ -130,9 +131,12 @@ class RunConfig:
             raise InputError(f"batch size must be >= 1, got {self.batch_size}")
         if self.threads < 1:
             raise InputError(f"--threads must be >= 1, got {self.threads}")
-        if not self.seeds or not all(isinstance(s, int) and not isinstance(s, bool)
-                                     for s in self.seeds):
-            raise InputError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+        if not self.seeds or not all(seed_ok(s) for s in self.seeds):
+            raise InputError(f"seeds (--seed) must be a non-empty list of integers from "
+                             f"{SEED_MIN} to {SEED_MAX}, got {self.seeds!r}")
+        if not seed_ok(self.dataset_seed) or self.dataset_seed < 0:
+            raise InputError(f"dataset_seed must be an integer from 0 to {SEED_MAX}, got "
+                             f"{self.dataset_seed!r}")
         self._check_params()
         check_executor(self.executor)
         return self
@@ -166,7 +170,7 @@ class RunConfig:
         if unknown:
             raise InputError(f"{source}: unknown setting(s) {', '.join(map(repr, unknown))}; valid: "
                              f"{', '.join(cls.field_names())}")
-        return cls(**{k: copy.deepcopy(v) for k, v in data.items()})
+        return cls(**{k: copy.deepcopy(v) for k, v in check_run_fields(data, source).items()})
 
     @classmethod
     def from_file(cls, path: str | Path) -> RunConfig:
@@ -181,9 +185,12 @@ class RunConfig:
             data = yaml.safe_load(p.read_text())  # JSON is YAML
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise InputError(f"config file {p} is not valid YAML or JSON ({exc})") from exc
+        if data is None:  # an empty file must not start the default run
+            raise InputError(f"config file {p} is empty; give at least one setting (valid: "
+                             f"{', '.join(cls.field_names())})")
         if isinstance(data, Mapping) and "config" in data and "versions" in data:  # a manifest
             data = data["config"]
-        return cls.from_mapping(data or {}, str(p))
+        return cls.from_mapping(data, f"config file {p}")
 
 
 #: RunConfig fields that choose how a run is executed, not what it computes (ignored when a resumed
@@ -407,9 +414,15 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         write_json_atomic(out_dir / MANIFEST_FILE, manifest)
         try:
             _run_items(cfg, worker, store, manifest, progress=progress, on_unit=on_unit)
-        finally:
+        except BaseException:
+            if old is None and len(store) == 0:  # refused before any row: leave no manifest
+                (out_dir / MANIFEST_FILE).unlink(missing_ok=True)
+                raise
             manifest["completed_rows"] = len(store)
             write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+            raise
+        manifest["completed_rows"] = len(store)
+        write_json_atomic(out_dir / MANIFEST_FILE, manifest)
     return store
 
 
