@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -255,3 +257,164 @@ def test_kitti_sequence_must_be_a_plain_name(tmp_path, seq):
 
     with pytest.raises(InputError, match="KITTI setting sequence must be a plain name"):
         KittiDataset(tmp_path, sequence=seq)
+
+
+# -- numeric plugin settings have ranges --------------------------------------------------------------
+@pytest.mark.parametrize(("params", "needle"), [
+    (["--target-param", "p2plane.tol=inf"], "setting 'tol' of target 'p2plane' must be a finite"),
+    (["--target-param", "p2plane.tol=0.5e1"], "setting 'tol' of target 'p2plane' must be > 0 and"),
+    (["--target-param", "p2plane.damping=-1"], "setting 'damping' of target 'p2plane' must be"),
+    (["--target-param", "p2plane.kdtree_workers=0"], "setting 'kdtree_workers'"),
+    (["--dataset-param", "noise_m=1e300"], "noise_m must be a number of metres from 0 to 10"),
+])
+def test_numeric_plugin_settings_are_range_checked_up_front(tmp_path, params, needle, user_error):
+    out = tmp_path / "out"
+    res = cli.invoke(app, ["run", "--dataset", "synthetic", "--dataset-param", "n_samples=1",
+                           "--attacks", "none", "--budgets", "1", "--quiet", "--out", str(out),
+                           *params])
+    user_error(res, needle)
+    assert not out.exists()
+
+
+def test_every_target_declares_a_range_for_each_numeric_setting():
+    import typing
+
+    from icpbench.core import registry
+
+    for name in registry.targets.names():
+        ok, _ = registry.targets.available(name)
+        if not ok:
+            continue
+        cls = registry.targets.get(name)
+        for key, hint in cls.param_types().items():
+            args = set(typing.get_args(hint)) | {hint}
+            if args & {int, float}:
+                assert key in cls.param_ranges, (name, key)
+
+
+# -- KITTI: rigid poses, content-keyed cache, ranges, implausible coordinates ----------------------
+@pytest.fixture(scope="module")
+def kitti_root(tmp_path_factory) -> Path:
+    from test_kitti_boreas import _sensor_poses, _write_kitti
+
+    root = tmp_path_factory.mktemp("kitti")
+    _write_kitti(root, _sensor_poses(0.3))
+    return root
+
+
+def _kitti_copy(kitti_root: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "k"
+    shutil.copytree(kitti_root, dst)
+    return dst
+
+
+def test_kitti_refuses_poses_and_calibration_that_are_not_rigid(kitti_root, tmp_path):
+    from icpbench.datasets.kitti import KittiDataset
+
+    root = _kitti_copy(kitti_root, tmp_path)
+    poses = root / "poses" / "00.txt"
+    lines = poses.read_text().splitlines()
+    vals = [float(v) for v in lines[2].split()]
+    for i in (0, 1, 2, 4, 5, 6, 8, 9, 10):  # the rotation block, scaled by 2
+        vals[i] *= 2
+    poses.write_text("\n".join([*lines[:2], " ".join(map(str, vals)), *lines[3:]]) + "\n")
+    with pytest.raises(InputError, match=r"00.txt:3: pose is not a rigid transform"):
+        KittiDataset(root, "00")
+    poses.write_text("\n".join(lines) + "\n")
+    calib = root / "sequences" / "00" / "calib.txt"
+    calib.write_text("Tr: " + " ".join(["0"] * 12) + "\n")
+    with pytest.raises(InputError, match=r"calib.txt:1: Tr is not a rigid transform"):
+        KittiDataset(root, "00")
+
+
+def test_kitti_cache_is_keyed_on_file_contents(kitti_root, tmp_path):
+    from icpbench.datasets.kitti import KittiDataset
+
+    root = _kitti_copy(kitti_root, tmp_path)
+    kw = dict(stride=5, window=1, n_points=500, cache_dir=tmp_path / "cache")
+    before = KittiDataset(root, "00", **kw)[0]
+    scan = root / "sequences" / "00" / "velodyne" / "000000.bin"
+    st = scan.stat()
+    data = np.fromfile(scan, dtype="<f4").reshape(-1, 4)
+    data[:, :3] += np.float32(0.5)  # same size; the old modification time is put back (cp -p)
+    data.tofile(scan)
+    os.utime(scan, ns=(st.st_atime_ns, st.st_mtime_ns))
+    after = KittiDataset(root, "00", **kw)[0]
+    assert not np.array_equal(before.scan, after.scan)
+
+
+@pytest.mark.parametrize(("param", "needle"), [
+    ({"offset_trans_m": float("nan")}, "setting 'offset_trans_m' of dataset 'kitti' must be a finite"),
+    ({"offset_rot_deg": float("inf")}, "setting 'offset_rot_deg' of dataset 'kitti' must be a finite"),
+    ({"n_points": 0}, "setting 'n_points' of dataset 'kitti' must be >= 6, got 0"),
+    ({"n_points": -5}, "setting 'n_points' of dataset 'kitti' must be >= 6, got -5"),
+    ({"map_voxel_m": 0.0}, "setting 'map_voxel_m' of dataset 'kitti' must be > 0"),
+])
+def test_kitti_settings_are_range_checked(kitti_root, param, needle):
+    from icpbench.datasets.kitti import KittiDataset
+
+    with pytest.raises(InputError, match=re.escape(needle)):
+        KittiDataset(kitti_root, "00", **param)
+
+
+def test_kitti_scan_with_absurd_coordinates_names_the_file(kitti_root, tmp_path):
+    from icpbench.datasets.kitti import KittiDataset
+
+    root = _kitti_copy(kitti_root, tmp_path)
+    scan = root / "sequences" / "00" / "velodyne" / "000000.bin"
+    data = np.fromfile(scan, dtype="<f4").reshape(-1, 4)
+    data[:10, :3] = np.float32(1e30)
+    data.tofile(scan)
+    ds = KittiDataset(root, "00", stride=5, window=1, cache_dir=tmp_path / "cache")
+    with pytest.raises(InputError, match=r"000000.bin is corrupt: 10 point\(s\) have a coordinate"):
+        ds[0]
+
+
+# -- resumed runs keep each row's software; partial grids are announced --------------------------------
+def test_a_resume_with_other_software_keeps_the_old_rows_provenance(tmp_path, monkeypatch):
+    import icpbench.harness.runner as runner
+    from icpbench.harness.report import table1
+    from icpbench.harness.results import load_results, read_manifest
+
+    cfg = dict(SYN, attacks=["none"], budgets=[0.5])
+    run(RunConfig(**cfg, samples=1), tmp_path, progress=False)
+    first = read_manifest(tmp_path)
+    real = runner.package_versions
+    monkeypatch.setattr(runner, "package_versions", lambda: {**real(), "torch": "0.0-other"})
+    run(RunConfig(**cfg, samples=2), tmp_path, progress=False)
+    m = read_manifest(tmp_path)
+    assert m["versions"] == first["versions"] and m["git"] == first["git"]
+    assert [e["rows_from"] for e in m["provenance"]] == [0, 1]
+    assert m["provenance"][1]["versions"]["torch"] == "0.0-other"
+    text = table1(load_results(tmp_path), reference="none")
+    assert "written by 2 different software versions or commits" in text
+
+
+def test_table_of_an_interrupted_or_running_run_says_the_grid_is_incomplete(tmp_path, tiny_run):
+    from icpbench.harness.report import table1
+    from icpbench.harness.results import load_results, lock_results_dir
+
+    def stop(done: int) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run(RunConfig(**SYN, attacks=["none", "uniform"], budgets=[0.5, 1.0], samples=2,
+                      batch_size=1), tmp_path, progress=False, on_unit=stop)
+    text = table1(load_results(tmp_path), reference="uniform")
+    assert "did not finish" in text and "the grid is incomplete: 3 of 4 rows" in text
+    done = tmp_path / "done"
+    shutil.copytree(tiny_run, done)
+    assert "warning: the grid" not in table1(load_results(done), reference="uniform")
+    with lock_results_dir(done):
+        assert "a run is still writing to this folder" in table1(load_results(done),
+                                                                 reference="uniform")
+
+
+def test_a_corrupt_manifest_is_not_answered_with_delete_it(tiny_run, tmp_path, user_error):
+    run_dir = tmp_path / "r"
+    shutil.copytree(tiny_run, run_dir)
+    (run_dir / "manifest.json").write_text("{not json")
+    res = cli.invoke(app, ["run", "--dataset", "synthetic", "--attacks", "none", "--budgets", "1",
+                           "--out", str(run_dir), "--quiet"])
+    user_error(res, "use a new --out")
+    assert "delete it" not in res.output

@@ -275,6 +275,17 @@ def _check_number(owner: str, key: str, v: Any, rng: Range | None) -> None:
             raise InputError(f"setting {key!r} of {owner} must be {rng}, got {x!r}")
 
 
+def check_ranges(owner: str, values: Mapping[str, Any], ranges: Mapping[str, Range]) -> None:
+    """Check the settings in ``values`` that ``ranges`` names (None passes; NaN/Inf never).
+
+    Raises:
+        InputError: a number out of its range; the message names the setting and ``owner``.
+    """
+    for k, rng in ranges.items():
+        if values.get(k) is not None:
+            _check_number(owner, k, values[k], rng)
+
+
 def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any],
                  ranges: Mapping[str, Range] | None = None) -> dict[str, Any]:
     """Check user settings against the settings a plugin declares; return them coerced.

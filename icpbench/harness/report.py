@@ -428,7 +428,52 @@ def load_notes(df: pd.DataFrame) -> list[str]:
     if df.attrs.get("duplicate_rows"):
         out.append(f"warning: {df.attrs['duplicate_rows']} row(s) stored twice under the same key; "
                    "the last of each was used")
+    return out + grid_notes(df) + provenance_notes(df)
+
+
+def grid_notes(df: pd.DataFrame) -> list[str]:
+    """Warnings that the table covers only part of its run's grid: a run still writes to the
+    folder, the run did not finish (interrupted, or stopped by an error), or rows of the grid
+    (configured attacks x targets x budgets x seeds over the samples present) are missing."""
+    out = []
+    if df.attrs.get("in_use"):
+        out.append("warning: a run is still writing to this folder; the table shows only the rows "
+                   "written so far")
+    elif df.attrs.get("finished") is False:
+        out.append("warning: the run that wrote this folder did not finish (interrupted or "
+                   "stopped); the table covers part of its grid; re-run the same `icpbench run` "
+                   "command to complete it")
+    cfg = df.attrs.get("config") or {}
+    axes = {"attack": cfg.get("attacks"), "target": cfg.get("targets"),
+            "budget": cfg.get("budgets"), "seed": cfg.get("seeds")}
+    if all(isinstance(v, list) and v for v in axes.values()) and "all" not in axes["attack"]:
+        expected = (df["sample_id"].nunique() * len(set(axes["attack"])) * len(set(axes["target"]))
+                    * len({float(b) for b in axes["budget"]}) * len(set(axes["seed"])))
+        have = len(df[df["attack"].isin(axes["attack"]) & df["target"].isin(axes["target"])
+                      & df["budget"].isin([float(b) for b in axes["budget"]])
+                      & df["seed"].isin(axes["seed"])])
+        if have < expected:
+            out.append(f"warning: the grid is incomplete: {expected - have} of {expected} rows "
+                       "(sample x attack x target x budget x seed) are missing; re-run the same "
+                       "`icpbench run` command to compute them")
     return out
+
+
+def provenance_notes(df: pd.DataFrame) -> list[str]:
+    """A warning when the rows were written by runs of different software (package versions or
+    commit), as the manifest's ``provenance`` records per range of rows."""
+    from icpbench.harness.results import software_of
+
+    entries = df.attrs.get("provenance") or []
+    kinds = {software_of(e) for e in entries}
+    if len(kinds) <= 1:
+        return []
+    starts = ", ".join(f"from row {e.get('rows_from')}: commit "
+                       f"{((e.get('git') or {}).get('commit') or 'unknown')[:10]}, icpbench "
+                       f"{(e.get('versions') or {}).get('icpbench', '?')}, torch "
+                       f"{(e.get('versions') or {}).get('torch', '?')}" for e in entries)
+    return [f"warning: the rows were written by {len(kinds)} different software versions or "
+            f"commits (resumed runs; manifest.json 'provenance'): {starts}"]
 
 
 #: First-line prefixes of the tables :func:`render` writes (Table 1 and the transfer table).

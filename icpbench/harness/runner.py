@@ -45,7 +45,9 @@ from icpbench.harness.results import (
     MANIFEST_FILE,
     RESULTS_FILE,
     ResultsStore,
+    count_rows,
     lock_results_dir,
+    merge_provenance,
     read_manifest,
     write_json_atomic,
 )
@@ -407,6 +409,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                     f"{out_dir} holds results made with other files for attack(s) "
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
         store = ResultsStore(out_dir)
+        manifest.update(merge_provenance(old, manifest, count_rows(out_dir)))
+        manifest["finished"] = False
         manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
         manifest["surrogate_settings"] = worker.surrogate.settings()
         manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
@@ -422,6 +426,7 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
             write_json_atomic(out_dir / MANIFEST_FILE, manifest)
             raise
         manifest["completed_rows"] = len(store)
+        manifest["finished"] = True
         write_json_atomic(out_dir / MANIFEST_FILE, manifest)
     return store
 
