@@ -119,11 +119,15 @@ def _out_dir(out: str, flag: str = "--out") -> Path:
     return Path(out)
 
 
-def _interrupted(out: Path | None) -> None:
-    """Ctrl-C: say where the finished work is and that the same command resumes; exit 130."""
-    where = f" in {out}" if out is not None else ""
-    typer.echo(f"\ninterrupted: the finished work is saved{where}; re-run the same command to "
-               "resume where it stopped", err=True)
+def _interrupted(out: Path | None, marker: str = "results.csv") -> None:
+    """Ctrl-C: say where the finished work is (only if some was saved: ``out/marker`` exists) and
+    that the same command resumes; exit 130."""
+    if out is not None and (out / marker).is_file():
+        typer.echo(f"\ninterrupted: the finished work is saved in {out}; re-run the same command "
+                   "to resume where it stopped", err=True)
+    else:
+        typer.echo("\ninterrupted before any result was saved; nothing was written there, re-run "
+                   "the command to start", err=True)
     raise typer.Exit(130)
 
 
@@ -220,13 +224,13 @@ def run(
     Defaults are those of icpbench.harness.runner.RunConfig; --config FILE replaces them, options given
     on the command line override both.
     """
-    from icpbench.harness.report import render, table1, transfer_frame
-    from icpbench.harness.results import load_results
-    from icpbench.harness.runner import RunConfig
-    from icpbench.harness.runner import run as run_grid
-
     out_dir: Path | None = None
     try:
+        from icpbench.harness.report import render, table1, transfer_frame
+        from icpbench.harness.results import attacks_not_run, load_results
+        from icpbench.harness.runner import RunConfig
+        from icpbench.harness.runner import run as run_grid
+
         out_dir = _out_dir(out)
         base = RunConfig.from_file(config) if config is not None else RunConfig()
         given: dict[str, object] = {
@@ -266,6 +270,12 @@ def run(
                 typer.echo(f"\nTransfer table (λ={b:g}, surrogate {cfg.surrogate}):\n")
                 typer.echo(render(transfer_frame(df, b), "md"))
         typer.echo(f"\nresults: {out_dir}/results.csv  manifest: {out_dir}/manifest.json")
+        not_run = attacks_not_run(df)
+        for name, why in not_run.items():
+            typer.echo(f"error: attack {name} did not run on any sample: {why}; its rows are "
+                       "retried when the same command is run again", err=True)
+        if not_run:
+            raise typer.Exit(2)
     except KeyboardInterrupt:
         _interrupted(out_dir)
     except Exception as exc:
@@ -361,13 +371,13 @@ def danger_map(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
-    from icpbench.analysis.danger_map import write_maps
-    from icpbench.harness.results import load_results
-    from icpbench.harness.runner import RunConfig
-    from icpbench.harness.runner import run as run_grid
-
     out_dir: Path | None = None
     try:
+        from icpbench.analysis.danger_map import write_maps
+        from icpbench.harness.results import load_results
+        from icpbench.harness.runner import RunConfig
+        from icpbench.harness.runner import run as run_grid
+
         out = out_dir = _out_dir(out)
         attacks = [attack] + ([compare] if compare else [])
         cfg = RunConfig(dataset=dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
@@ -388,7 +398,7 @@ def danger_map(
                        f"{c['q3']:.2f}] m, {attack} larger at {100 * c['share_ours_larger']:.0f}%")
         typer.echo(f"written to {out}: " + ", ".join(summary["files"]))
     except KeyboardInterrupt:
-        _interrupted(out_dir)
+        _interrupted(None if out_dir is None else out_dir / "run")
     except Exception as exc:
         _user_error(exc)
 
@@ -481,10 +491,10 @@ def train(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
-    from icpbench.learning.training import train as run_training
-    from icpbench.learning.training import train_config
-
     try:
+        from icpbench.learning.training import train as run_training
+        from icpbench.learning.training import train_config
+
         for flag, v, lo in (("--epochs", epochs, 0), ("--pretrain-epochs", pretrain_epochs, 0),
                             ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 1),
                             ("--batch-size", batch_size, 1), ("--threads", threads, 1)):
@@ -522,7 +532,7 @@ def train(
                        f"({r['converged']}/{r['samples']} converged), mean max displacement "
                        f"{r['disp_max_mean']:.3f}")
     except KeyboardInterrupt:
-        _interrupted(Path(out))
+        _interrupted(Path(out) if out.strip() else None, "generator.pt")
     except Exception as exc:
         _user_error(exc)
 

@@ -418,3 +418,74 @@ def test_a_corrupt_manifest_is_not_answered_with_delete_it(tiny_run, tmp_path, u
                            "--out", str(run_dir), "--quiet"])
     user_error(res, "use a new --out")
     assert "delete it" not in res.output
+
+
+def test_ctrl_c_before_any_result_does_not_claim_saved_work(tmp_path, monkeypatch):
+    import icpbench.harness.runner as runner
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(runner, "run", interrupted)
+    out = tmp_path / "never"
+    res = cli.invoke(app, ["run", "--dataset", "synthetic", "--attacks", "none", "--budgets", "1",
+                           "--out", str(out), "--quiet"])
+    assert res.exit_code == 130 and "Traceback" not in res.output
+    assert "interrupted before any result was saved" in res.output
+    assert "saved in" not in res.output and not out.exists()
+
+
+def test_an_attack_without_a_checkpoint_fails_the_command_and_is_retried(tmp_path):
+    from icpbench.harness.results import ResultsStore, load_results
+
+    out = tmp_path / "out"
+    args = ["run", "--dataset", "synthetic", "--dataset-param", "n_samples=1", "--dataset-param",
+            "n_scan=100", "--dataset-param", "n_map=1000", "--attacks", "none,generator",
+            "--budgets", "1", "--out", str(out), "--quiet"]
+    res = cli.invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert "error: attack generator did not run on any sample: CheckpointError: no shipped " \
+           "generator checkpoint for dataset 'synthetic'" in res.output
+    row = load_results(out).query("attack == 'generator'").iloc[0]
+    key = (row["sample_id"], "generator", row["target"], 1.0, 0)
+    assert not ResultsStore(out).has(key)  # not final: the next run computes it again
+
+
+@pytest.mark.parametrize("content", [b"", b"v 0 0 0\nv 1 0"])  # empty, truncated
+def test_an_empty_mesh_file_is_skipped_like_a_truncated_one(tmp_path, content):
+    from test_defects import _write_meshes
+
+    from icpbench.harness.results import load_results
+
+    folder = tmp_path / "meshes"
+    _write_meshes(folder, 3)
+    (folder / "box1.obj").write_bytes(content)
+    cfg = RunConfig(dataset="meshes", attacks=["none"], targets=["p2plane"], budgets=[0.05],
+                    dataset_params={"root": str(folder), "test_fraction": 1.0,
+                                    "n_map_points": 2000, "n_scan_points": 300})
+    run(cfg, tmp_path / "o", progress=False)
+    df = load_results(tmp_path / "o")
+    assert list(df.loc[df["status"] == "error", "sample_id"]) == ["meshes/box1"]
+    assert len(df) == 3
+
+
+# -- checkpoint messages name the real problem -----------------------------------------------------------
+def test_checkpoint_messages_name_the_device_and_the_refused_pickle(tmp_path):
+    import pickle
+
+    from icpbench.core.errors import CheckpointError
+    from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
+    from icpbench.learning.network import Generator, generator_config
+
+    good = tmp_path / "g.pt"
+    save_checkpoint(Generator(generator_config("objects")), good)
+    if not torch.cuda.is_available():
+        with pytest.raises(CheckpointError, match="CUDA is not available on this machine"):
+            load_checkpoint(good, map_location="cuda")
+    evil = tmp_path / "evil.pt"
+    evil.write_bytes(pickle.dumps(print))  # a plain pickle that names a callable
+    shutil.copy(tmp_path / "g.json", tmp_path / "evil.json")
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(evil)
+    msg = str(info.value)
+    assert "it may be a pickle that carries code" in msg and "weights_only=False" not in msg

@@ -21,7 +21,6 @@ the odometry-style variant of the protocol; train/test separation is by choosing
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -118,15 +117,6 @@ def read_kitti_poses(path: Path) -> np.ndarray:
     return np.stack(poses)
 
 
-def file_digest(path: Path) -> str:
-    """A hash of the bytes of ``path`` (BLAKE2b, 16 bytes, hex)."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 class KittiDataset(Dataset):
     """KITTI odometry sequence: scan ``i`` vs a submap of its neighbouring frames.
 
@@ -195,8 +185,8 @@ class KittiDataset(Dataset):
         self.frame_ids = frame_ids
         self.sequence = str(sequence)
         fingerprint = {"seq_dir": str(seq_dir.resolve()), "poses": str(Path(poses).resolve()),
-                       "n_scans": len(self.bins), "poses_digest": file_digest(Path(poses)),
-                       "calib_digest": file_digest(seq_dir / "calib.txt")}
+                       "n_scans": len(self.bins), "poses_digest": sm.file_digest(Path(poses)),
+                       "calib_digest": sm.file_digest(seq_dir / "calib.txt")}
         self._gen = {"window": int(window), "map_stride": int(map_stride), "n_points": int(n_points),
                      "scan_voxel_m": float(scan_voxel_m), "min_range_m": float(min_range_m),
                      "map_voxel_m": float(map_voxel_m), "map_radius_m": float(map_radius_m),
@@ -228,7 +218,7 @@ class KittiDataset(Dataset):
         """A key of the contents of every scan file sample k reads (name and a hash of the bytes),
         so that a rewritten file is never served from a stale cache entry, even one rewritten
         with the same size and its old modification time (``cp -p``, ``rsync -a``)."""
-        return sm.params_hash({"files": [[self.bins[j].name, file_digest(self.bins[j])]
+        return sm.params_hash({"files": [[self.bins[j].name, sm.file_digest(self.bins[j])]
                                          for j in [k, *self._neighbours(k)]]}, FORMAT_VERSION)
 
     def __getitem__(self, i: int) -> Sample:

@@ -53,6 +53,15 @@ def read_float32_records(path: str | Path, fields: int, what: str) -> np.ndarray
     return rec
 
 
+def file_digest(path: Path) -> str:
+    """A hash of the bytes of ``path`` (BLAKE2b, 16 bytes, hex)."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a (4, 4) transform to points (K, 3); returns float64."""
     T = np.asarray(T, dtype=np.float64)

@@ -37,6 +37,10 @@ STORE_FILES = (RESULTS_FILE, MANIFEST_FILE, LOCK_FILE)
 #: Prefix of the ``error`` of rows of a sample whose input (file) is bad. Such rows are not final:
 #: a re-run tries the sample again (e.g. after the file was fixed) and its new rows replace them.
 BAD_INPUT = "bad input: "
+#: Prefix of the ``error`` of rows of an attack that could not run for a reason the user can fix
+#: (a missing or unreadable checkpoint: an icpbench user error). Like :data:`BAD_INPUT` rows they
+#: are not final: the next run of the same command tries them again.
+NOT_RUN = "not run: "
 KEY_COLUMNS = ("sample_id", "attack", "target", "budget", "seed")
 
 #: Columns every row has, in order. ``meta`` and ``extra`` hold JSON dicts (dataset metadata such as
@@ -103,7 +107,7 @@ def _complete(row: Mapping[str, Any]) -> bool:
 
 def _final(row: Mapping[str, Any]) -> bool:
     """A complete row that a re-run must not recompute (not the row of a bad input file)."""
-    return _complete(row) and not str(row.get("error") or "").startswith(BAD_INPUT)
+    return _complete(row) and not str(row.get("error") or "").startswith((BAD_INPUT, NOT_RUN))
 
 
 class ResultsStore:
@@ -188,6 +192,17 @@ def _json_default(v: Any) -> Any:
     if hasattr(v, "tolist"):
         return v.tolist()
     return str(v)
+
+
+def attacks_not_run(df: pd.DataFrame) -> dict[str, str]:
+    """``{attack: message}`` of the attacks none of whose rows ran because of a user error
+    (:data:`NOT_RUN`), with the first such message."""
+    out = {}
+    for attack, g in df.groupby("attack"):
+        errs = g["error"].fillna("").astype(str) if "error" in g else pd.Series([""] * len(g))
+        if len(g) and errs.str.startswith(NOT_RUN).all():
+            out[str(attack)] = errs.iloc[0][len(NOT_RUN):]
+    return out
 
 
 def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:

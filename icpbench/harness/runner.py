@@ -34,7 +34,7 @@ import torch
 
 from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput, validate_budget
 from icpbench.core import registry
-from icpbench.core.errors import InputError
+from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.se3 import POSE_ERROR_COLUMNS, pose_error_components
 from icpbench.core.types import Batch, Sample
 from icpbench.datasets.base import Dataset
@@ -43,6 +43,7 @@ from icpbench.harness.progress import RunProgress
 from icpbench.harness.results import (
     BAD_INPUT,
     MANIFEST_FILE,
+    NOT_RUN,
     RESULTS_FILE,
     ResultsStore,
     count_rows,
@@ -518,6 +519,8 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
         attack_err = ""
     except Exception as exc:  # a crashing plugin becomes failed rows, the run goes on
         out, attack_err = None, f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, CheckpointError):  # the user can fix it: retried by the next run
+            attack_err = NOT_RUN + attack_err
     attack_time = (time.perf_counter() - t0) / B
     ids = [s.id for s in batch.samples]
     metas = [s.meta for s in batch.samples]
