@@ -38,19 +38,12 @@ FORMAT_VERSION = 1
 
 def read_kitti_bin(path: Path) -> np.ndarray:
     """Points (K, 3) float64 (x, y, z in the Velodyne frame) of a KITTI ``.bin`` scan."""
-    pts = sm.read_float32_records(path, 4, "KITTI scan")[:, :3]
-    far = int((np.abs(pts) > MAX_COORD_M).any(1).sum())
-    if far:
-        raise InputError(f"KITTI scan {path} is corrupt: {far} point(s) have a coordinate beyond "
-                         f"{MAX_COORD_M:g} m")
-    return pts
+    return sm.read_float32_records(path, 4, "KITTI scan")[:, :3]
 
 
 #: Largest deviation of ``R^T R`` from the identity (and of ``det R`` from 1) accepted in a pose or
 #: calibration read from a text file (KITTI writes 6-7 significant digits).
 RIGID_TOL = 1e-3
-#: Largest plausible coordinate of a lidar point (metres); beyond it a scan is corrupt.
-MAX_COORD_M = 1e5
 
 
 def check_rigid(T: np.ndarray, where: str, what: str) -> None:
