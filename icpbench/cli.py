@@ -119,11 +119,15 @@ def _out_dir(out: str, flag: str = "--out") -> Path:
     return Path(out)
 
 
-def _interrupted(out: Path | None) -> None:
-    """Ctrl-C: say where the finished work is and that the same command resumes; exit 130."""
-    where = f" in {out}" if out is not None else ""
-    typer.echo(f"\ninterrupted: the finished work is saved{where}; re-run the same command to "
-               "resume where it stopped", err=True)
+def _interrupted(out: Path | None, marker: str = "results.csv") -> None:
+    """Ctrl-C: say where the finished work is (only if some was saved: ``out/marker`` exists) and
+    that the same command resumes; exit 130."""
+    if out is not None and (out / marker).is_file():
+        typer.echo(f"\ninterrupted: the finished work is saved in {out}; re-run the same command "
+                   "to resume where it stopped", err=True)
+    else:
+        typer.echo("\ninterrupted before any result was saved; nothing was written there, re-run "
+                   "the command to start", err=True)
     raise typer.Exit(130)
 
 
@@ -149,6 +153,20 @@ def list_plugins() -> None:
         typer.echo(f"\n{reg.kind}s ({reg.group}):")
         typer.echo(tabulate(rows, headers=["name", "loads", "description / reason"],
                             tablefmt="simple"))
+    failed = registry.plugin_module_errors()
+    if failed:
+        typer.echo(f"\nplugin modules named in {registry.PLUGINS_ENV} that do not load:")
+        typer.echo(tabulate(sorted(failed.items()), headers=["module", "reason"],
+                            tablefmt="simple"))
+
+
+def _warn_plugin_modules() -> None:
+    """One line on stderr per ``ICPBENCH_PLUGINS`` module that did not load."""
+    from icpbench.core import registry
+
+    for mod, reason in registry.plugin_module_errors().items():
+        typer.echo(f"warning: {registry.PLUGINS_ENV} module {mod!r} did not load ({reason}); "
+                   "its plugins are not registered", err=True)
 
 
 @app.command()
@@ -208,13 +226,13 @@ def run(
     Defaults are those of icpbench.harness.runner.RunConfig; --config FILE replaces them, options given
     on the command line override both.
     """
-    from icpbench.harness.report import render, table1, transfer_frame
-    from icpbench.harness.results import load_results
-    from icpbench.harness.runner import RunConfig
-    from icpbench.harness.runner import run as run_grid
-
     out_dir: Path | None = None
     try:
+        from icpbench.harness.report import render, table1, transfer_frame
+        from icpbench.harness.results import attacks_not_run, load_results
+        from icpbench.harness.runner import RunConfig
+        from icpbench.harness.runner import run as run_grid
+
         out_dir = _out_dir(out)
         base = RunConfig.from_file(config) if config is not None else RunConfig()
         given: dict[str, object] = {
@@ -241,6 +259,7 @@ def run(
                 merged.setdefault(n, {}).update(p)
             setattr(base, field_, merged)
         base.dataset_params = {**base.dataset_params, **_flat(dataset_param, "--dataset-param")}
+        _warn_plugin_modules()
         cfg = base.validate()
         _check_reference(reference, cfg.attacks)
         run_grid(cfg, out_dir, progress=not quiet)
@@ -255,6 +274,12 @@ def run(
                            f"\nTransfer table (λ={b:g}, surrogate {cfg.surrogate}):\n")
                 typer.echo(render(transfer_frame(df, b), "md"))
         typer.echo(f"\nresults: {out_dir}/results.csv  manifest: {out_dir}/manifest.json")
+        not_run = attacks_not_run(df)
+        for name, why in not_run.items():
+            typer.echo(f"error: attack {name} did not run on any sample: {why}; its rows are "
+                       "retried when the same command is run again", err=True)
+        if not_run:
+            raise typer.Exit(2)
     except KeyboardInterrupt:
         _interrupted(out_dir)
     except Exception as exc:
@@ -281,6 +306,7 @@ def table(
         table1,
         transfer_frame,
         transfer_vs_baseline,
+        write_table,
     )
     from icpbench.harness.results import load_results
 
@@ -304,8 +330,7 @@ def table(
         if out is None:
             typer.echo(text)
         else:
-            Path(out).parent.mkdir(parents=True, exist_ok=True)
-            Path(out).write_text(text)
+            write_table(out, text)
     except Exception as exc:
         _user_error(exc)
 
@@ -410,13 +435,13 @@ def danger_map(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
-    from icpbench.analysis.danger_map import write_maps
-    from icpbench.harness.results import load_results
-    from icpbench.harness.runner import RunConfig
-    from icpbench.harness.runner import run as run_grid
-
     out_dir: Path | None = None
     try:
+        from icpbench.analysis.danger_map import write_maps
+        from icpbench.harness.results import load_results
+        from icpbench.harness.runner import RunConfig
+        from icpbench.harness.runner import run as run_grid
+
         out = out_dir = _out_dir(out)
         attacks = [attack] + ([compare] if compare else [])
         cfg = RunConfig(dataset=dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
@@ -437,7 +462,7 @@ def danger_map(
                        f"{c['q3']:.2f}] m, {attack} larger at {100 * c['share_ours_larger']:.0f}%")
         typer.echo(f"written to {out}: " + ", ".join(summary["files"]))
     except KeyboardInterrupt:
-        _interrupted(out_dir)
+        _interrupted(None if out_dir is None else out_dir / "run")
     except Exception as exc:
         _user_error(exc)
 
@@ -463,8 +488,8 @@ def object_study(
             raise typer.BadParameter(f"--budget must be > 0, got {budget}")
         if objects < 1:
             raise typer.BadParameter(f"--objects must be >= 1, got {objects}")
-        if not 0 <= figure_objects <= objects:
-            raise typer.BadParameter(f"--figure-objects must be between 0 and --objects "
+        if not 1 <= figure_objects <= objects:  # the figure shows at least one object
+            raise typer.BadParameter(f"--figure-objects must be between 1 and --objects "
                                      f"({objects}), got {figure_objects}")
         models = dict(_kv(m, "--model") for m in model)
         rows, clouds, _ = study({k: str(v) for k, v in models.items()}, budget, objects,
@@ -530,12 +555,12 @@ def train(
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
-    from icpbench.learning.training import train as run_training
-    from icpbench.learning.training import train_config
-
     try:
+        from icpbench.learning.training import train as run_training
+        from icpbench.learning.training import train_config
+
         for flag, v, lo in (("--epochs", epochs, 0), ("--pretrain-epochs", pretrain_epochs, 0),
-                            ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 0),
+                            ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 1),
                             ("--batch-size", batch_size, 1), ("--threads", threads, 1)):
             if v is not None and v < lo:
                 raise typer.BadParameter(f"{flag} must be >= {lo}, got {v}")
@@ -557,8 +582,10 @@ def train(
             over["sector_iter"] = {**preset_si, **_flat(sector_iter_param, "--sector-iter-param")}
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
-        if budgets:
+        if budgets is not None:
             over["budgets"] = _floats(budgets, "--budgets")
+            if not over["budgets"]:
+                raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
         if dataset_param:
             over["dataset_params"] = _flat(dataset_param, "--dataset-param")
         card = run_training(train_config(preset, **over), out_dir, progress=not quiet,
@@ -569,7 +596,7 @@ def train(
                        f"({r['converged']}/{r['samples']} converged), mean max displacement "
                        f"{r['disp_max_mean']:.3f}")
     except KeyboardInterrupt:
-        _interrupted(Path(out))
+        _interrupted(Path(out) if out.strip() else None, "generator.pt")
     except Exception as exc:
         _user_error(exc)
 

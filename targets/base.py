@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from icpbench.core.types import Registration
+from icpbench.targets.icp import ICP_RANGES
 
 
 class Target(ABC):
@@ -39,6 +40,10 @@ class Target(ABC):
     #: The target's ICP settings (an ``icpbench.targets.icp.ICPConfig``), or None for a target
     #: that does not use them.
     config: Any = None
+
+    #: Valid values of the numeric settings (checked with the types before a target is built;
+    #: NaN and Inf are refused for every setting). Targets with settings of their own extend it.
+    param_ranges: ClassVar[dict[str, Any]] = ICP_RANGES
 
     @classmethod
     def param_types(cls) -> dict[str, Any]:

@@ -41,7 +41,8 @@ from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.types import Registration
 from icpbench.targets.base import Target
-from icpbench.targets.icp import ICPConfig, config_dict, icp
+from icpbench.core.registry import Range, check_ranges
+from icpbench.targets.icp import ICP_RANGES, ICPConfig, config_dict, icp
 
 #: small_gicp's eigenvalues of a regularised covariance (``CovarianceSetter``).
 PLANE_EIGENVALUES = (1e-3, 1.0, 1.0)
@@ -132,9 +133,12 @@ class SmallGICPReplica(Target):
     name: ClassVar[str] = "small-gicp-replica"
     description: ClassVar[str] = "small_gicp GICP replicated in PyTorch (differentiable)"
     differentiable: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {
+        **ICP_RANGES, "num_neighbors": Range(5), "threads": Range(1, 1024)}
 
     def __init__(self, preset: ICPConfig | str | None = "lidar", *, num_neighbors: int = 20,
                  scan_cov_grad: bool = True, threads: int = 1, **overrides: Any) -> None:
+        check_ranges("target 'small-gicp-replica'", locals(), self.param_ranges)
         from icpbench.targets.blackbox import resolve_preset
 
         cfg = resolve_preset(preset, overrides, "small-gicp-replica")

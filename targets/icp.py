@@ -32,6 +32,7 @@ import torch
 
 from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
+from icpbench.core.registry import Range, check_ranges
 from icpbench.core.se3 import hat, se3_exp
 from icpbench.core.types import Registration
 from icpbench.targets import forward_cache
@@ -41,6 +42,20 @@ Backprop = Literal["unrolled", "implicit"]
 Kernel = Literal["cauchy", "huber", "geman_mcclure"]
 #: The robust kernels of :class:`ICPConfig` (``kernel``).
 KERNELS: tuple[str, ...] = ("cauchy", "huber", "geman_mcclure")
+
+
+#: Valid values of the numeric :class:`ICPConfig` fields (None, where allowed, disables a feature).
+ICP_RANGES: dict[str, Range] = {
+    "max_iterations": Range(1, 1_000_000),
+    "tol": Range(0.0, 1.0, lo_open=True),
+    "cauchy_c": Range(0.0, lo_open=True),
+    "d_max": Range(0.0, lo_open=True),
+    "soft_steepness": Range(0.0, lo_open=True),
+    "damping": Range(0.0, 1.0),
+    "min_correspondences": Range(1),
+    "kdtree_workers": Range(1, 1024),
+    "nn_reuse_m": Range(0.0),
+}
 
 
 @dataclass(frozen=True)
@@ -94,6 +109,7 @@ class ICPConfig:
     kernel: Kernel = "cauchy"
 
     def __post_init__(self) -> None:
+        check_ranges("the ICP settings", asdict(self), ICP_RANGES)
         if self.max_iterations < 1:
             raise InputError(f"max_iterations must be >= 1, got {self.max_iterations}")
         if not self.tol > 0:

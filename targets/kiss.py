@@ -101,6 +101,7 @@ import numpy as np
 from kiss_icp.pybind import kiss_icp_pybind as kp
 
 from icpbench.core.errors import InputError, PluginUnavailableError
+from icpbench.core.registry import Range, check_ranges
 from icpbench.core.types import validate_cloud
 from icpbench.targets.base import Target
 from icpbench.targets.blackbox import (
@@ -110,7 +111,7 @@ from icpbench.targets.blackbox import (
     point_to_point_hessian,
     resolve_preset,
 )
-from icpbench.targets.icp import ICPConfig, config_dict
+from icpbench.targets.icp import ICP_RANGES, ICPConfig, config_dict
 
 #: kiss-icp versions whose pybind signatures this module was written and tested against.
 TESTED_VERSIONS = ((1, 2), (1, 4))  # [1.2, 1.4)
@@ -264,6 +265,16 @@ class KissICPTarget(BlackBoxTarget):
     """
 
     name: ClassVar[str] = "kiss-icp"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        **ICP_RANGES,
+        "voxel_size": Range(0.0, lo_open=True),
+        "max_points_per_voxel": Range(1),
+        "initial_threshold": Range(0.0, lo_open=True),
+        "max_corr": Range(0.0, lo_open=True),
+        "kernel": Range(0.0, lo_open=True),
+        "max_iterations": Range(1, 1_000_000),
+        "threads": Range(1, 1024),
+    }
     description: ClassVar[str] = "KISS-ICP point-to-point registration to a voxel map (black box)"
     map_type: ClassVar[type] = KissMap
 
@@ -272,6 +283,7 @@ class KissICPTarget(BlackBoxTarget):
                  initial_threshold: float | None = None, max_corr: float | None = None,
                  kernel: float | None = None, max_iterations: int = 500, threads: int = 1,
                  **overrides: Any) -> None:
+        check_ranges("target 'kiss-icp'", locals(), self.param_ranges)
         cfg = self.config = resolve_preset(preset, overrides, "KISS-ICP")
         self.voxel_size, self.sigma, self.max_corr, self.kernel = kiss_settings(
             cfg, voxel_size, initial_threshold, max_corr, kernel)

@@ -46,7 +46,8 @@ from icpbench.core.mapindex import MapIndex
 from icpbench.core.types import Registration
 from icpbench.targets.base import Target
 from icpbench.targets.icp import ICPConfig, config_dict, icp
-from icpbench.targets.kiss import VoxelNeighbours, kept_points, kiss_settings
+from icpbench.core.registry import check_ranges
+from icpbench.targets.kiss import KissICPTarget, VoxelNeighbours, kept_points, kiss_settings
 
 
 class KissReplicaMap(MapIndex):
@@ -104,12 +105,16 @@ class KissICPReplica(Target):
     name: ClassVar[str] = "kiss-icp-replica"
     description: ClassVar[str] = "KISS-ICP registration replicated in PyTorch (differentiable)"
     differentiable: ClassVar[bool] = True
+    #: the black box's ranges (the replica takes the same settings, less the thread count)
+    param_ranges: ClassVar[dict[str, Any]] = {
+        k: v for k, v in KissICPTarget.param_ranges.items() if k != "threads"}
 
     def __init__(self, preset: ICPConfig | str | None = "lidar", *,
                  voxel_size: float | None = None, max_points_per_voxel: int = 20,
                  initial_threshold: float | None = None, max_corr: float | None = None,
                  kernel: float | None = None, max_iterations: int = 500,
                  **overrides: Any) -> None:
+        check_ranges("target 'kiss-icp-replica'", locals(), self.param_ranges)
         from icpbench.targets.blackbox import resolve_preset
 
         base = resolve_preset(preset, overrides, "kiss-icp-replica")

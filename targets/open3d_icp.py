@@ -64,6 +64,7 @@ import open3d as o3d
 import torch
 
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range, check_ranges
 from icpbench.core.types import Registration, validate_cloud
 from icpbench.targets.base import Target
 from icpbench.targets.blackbox import (
@@ -73,7 +74,7 @@ from icpbench.targets.blackbox import (
     point_to_point_hessian,
     resolve_preset,
 )
-from icpbench.targets.icp import ICPConfig, config_dict
+from icpbench.targets.icp import ICP_RANGES, ICPConfig, config_dict
 
 _reg = o3d.pipelines.registration
 
@@ -118,6 +119,10 @@ class Open3DICP(BlackBoxTarget):
     """
 
     name: ClassVar[str] = "open3d"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        **ICP_RANGES,
+        "threads": Range(1, 1024),
+    }
     description: ClassVar[str] = (
         "Open3D registration_icp point-to-plane (or point-to-point), black box, same settings as p2plane"
     )
@@ -126,6 +131,7 @@ class Open3DICP(BlackBoxTarget):
     def __init__(self, preset: ICPConfig | str | None = "lidar", *,
                  mode: Literal["plane", "point"] = "plane", threads: int = 1,
                  **overrides: Any) -> None:
+        check_ranges("target 'open3d'", locals(), self.param_ranges)
         if mode == "point" and isinstance(preset, str) and preset in POINT_PRESET_DEFAULTS:
             for key, value in POINT_PRESET_DEFAULTS[preset].items():
                 overrides.setdefault(key, value)

@@ -66,10 +66,11 @@ import numpy as np
 import small_gicp
 
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range, check_ranges
 from icpbench.core.types import validate_cloud
 from icpbench.targets.base import Target
 from icpbench.targets.blackbox import BlackBoxTarget, OneResult, resolve_preset
-from icpbench.targets.icp import ICPConfig, config_dict
+from icpbench.targets.icp import ICP_RANGES, ICPConfig, config_dict
 
 RegistrationType = Literal["GICP", "PLANE_ICP", "ICP"]
 
@@ -99,6 +100,13 @@ class SmallGICPTarget(BlackBoxTarget):
     """
 
     name: ClassVar[str] = "small-gicp"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        **ICP_RANGES,
+        "rotation_epsilon": Range(0.0, lo_open=True),
+        "translation_epsilon": Range(0.0, lo_open=True),
+        "num_neighbors": Range(1),
+        "threads": Range(1, 1024),
+    }
     description: ClassVar[str] = "small_gicp GICP (or PLANE_ICP / ICP) registration (black box)"
     map_type: ClassVar[type] = SmallGICPMap
 
@@ -106,6 +114,7 @@ class SmallGICPTarget(BlackBoxTarget):
                  registration_type: RegistrationType = "GICP",
                  rotation_epsilon: float = np.deg2rad(0.1), translation_epsilon: float = 1e-3,
                  num_neighbors: int = 20, threads: int = 1, **overrides: Any) -> None:
+        check_ranges("target 'small-gicp'", locals(), self.param_ranges)
         cfg = self.config = resolve_preset(preset, overrides, "small_gicp")
         if registration_type not in ("GICP", "PLANE_ICP", "ICP"):
             raise InputError(

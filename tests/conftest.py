@@ -32,3 +32,16 @@ def reuse_radii(monkeypatch):
 
     monkeypatch.setattr(icp_mod, "_Correspondences", Spy)
     return seen
+
+
+@pytest.fixture
+def user_error():
+    """A checker of a CLI result that is a user error: exit status 2, ``needle`` in the output,
+    no traceback."""
+
+    def check(res, needle: str) -> None:
+        assert res.exit_code == 2, res.output
+        assert needle in res.output, res.output
+        assert "Traceback" not in res.output
+
+    return check

@@ -241,7 +241,7 @@ def test_half_written_rows_are_ignored_and_nan_rows_are_not_converged(small_run,
     (["train", "--max-minutes", "-1"], "--max-minutes must be a positive number, got -1"),
     (["train", "--epochs", "-1"], "--epochs must be >= 0, got -1"),
     (["object-study", "--model", "a=x.pt", "--figure-objects", "-1"],
-     "--figure-objects must be between 0 and --objects"),
+     "--figure-objects must be between 1 and --objects"),
 ])
 def test_nonsense_inputs_are_refused(args, needle, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # a command that wrongly ran would write here, not in the repo

@@ -190,8 +190,8 @@ def test_folder_errors(tmp_path):
     with pytest.raises(InputError, match="root"):
         MeshFolderDataset()
     (tmp_path / "empty.obj").write_bytes(b"")
-    with pytest.raises(InputError, match=r"empty\.obj is empty"):
-        MeshFolderDataset(tmp_path)
+    with pytest.raises(InputError, match=r"empty\.obj is empty"):  # when its sample is read
+        MeshFolderDataset(tmp_path, split="all")[0]
     with pytest.raises(InputError, match="test_fraction"):
         MeshFolderDataset(tmp_path, test_fraction=2.0)
 

@@ -19,6 +19,7 @@ from scipy import stats
 
 from icpbench.analysis.plotting import pyplot, save
 from icpbench.core.errors import InputError
+from icpbench.core.filenames import safe_component
 
 LOCATION = "meta.frame"
 ERROR_CAP_M = 3.0  # colour scale cap of figure 5
@@ -175,14 +176,15 @@ def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path
     for name in [attack] + ([compare] if compare else []):
         loc = location_errors(df, name, budget)
         mean = per_location_mean(loc)
-        loc.to_csv(out / f"{name}_locations.csv", index=False)
-        mean.to_csv(out / f"{name}_locations_mean.csv", index=False)
-        files = [str(plot_route(mean, out / f"{name}_map.png",
+        stem = safe_component(name)
+        loc.to_csv(out / f"{stem}_locations.csv", index=False)
+        mean.to_csv(out / f"{stem}_locations_mean.csv", index=False)
+        files = [str(plot_route(mean, out / f"{stem}_map.png",
                                 title=f"{name}, λ = {budget:g} m: mean over passes"))]
         if "pass" in loc:
             for p in sorted(loc["pass"].unique()):
                 files.append(str(plot_route(per_location_mean(loc[loc["pass"] == p]),
-                                            out / f"{name}_map_pass{p}.png",
+                                            out / f"{stem}_map_pass{safe_component(p)}.png",
                                             title=f"{name}, λ = {budget:g} m, pass {p}")))
         rho, n = pass_rank_correlation(loc)
         s = {"locations": int(len(mean)), "passes": int(loc["pass"].nunique())
@@ -193,16 +195,16 @@ def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path
             s["auc_open_vs_dense"] = open_vs_dense_auc(mean)
             s["mean_by_stretch"] = mean.groupby("stretch")["trans_err_xy"].mean().to_dict()
         summary[name] = s
-        summary["files"] += [f"{name}_locations.csv", f"{name}_locations_mean.csv"] + [
+        summary["files"] += [f"{stem}_locations.csv", f"{stem}_locations_mean.csv"] + [
             Path(f).name for f in files]
     if compare:
         cmp = comparison(df, attack, compare, budget)
-        cmp.to_csv(out / f"comparison_{attack}_vs_{compare}.csv", index=False)
-        plot_comparison(cmp, out / f"comparison_{attack}_vs_{compare}.png", attack, compare)
+        cstem = f"comparison_{safe_component(attack)}_vs_{safe_component(compare)}"
+        cmp.to_csv(out / f"{cstem}.csv", index=False)
+        plot_comparison(cmp, out / f"{cstem}.png", attack, compare)
         q1, med, q3 = np.nanpercentile(cmp["difference"], [25, 50, 75])
         summary["comparison"] = {"median": float(med), "q1": float(q1), "q3": float(q3),
                                  "share_ours_larger": float((cmp["difference"] > 0).mean())}
-        summary["files"] += [f"comparison_{attack}_vs_{compare}.csv",
-                             f"comparison_{attack}_vs_{compare}.png"]
+        summary["files"] += [f"{cstem}.csv", f"{cstem}.png"]
     write_json_atomic(out / "summary.json", summary)
     return summary

@@ -27,6 +27,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from icpbench.core.errors import InputError  # noqa: E402
+from icpbench.core.filenames import safe_component  # noqa: E402
 from icpbench.core.types import Sample  # noqa: E402
 from icpbench.datasets import submaps as sm  # noqa: E402
 from icpbench.datasets.base import Dataset  # noqa: E402
@@ -68,7 +69,8 @@ def show_dataset(dataset: str | Dataset, out_dir: str | Path, *, sample_index: i
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     name = (ds.name or type(ds).__name__).replace("/", "_")
-    paths = [out / f"{name}_route.png", out / f"{name}_scan_on_submap.png"]
+    stem = safe_component(name)
+    paths = [out / f"{stem}_route.png", out / f"{stem}_scan_on_submap.png"]
     if hasattr(ds, "town") and hasattr(ds, "route"):
         _town_figure(ds, paths[0])
     else:

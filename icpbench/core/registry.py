@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import math
 import os
 import types
 import typing
@@ -63,9 +64,8 @@ class Registry:
             return
         for ep in entry_points(group=self.group):
             self._entry_points.setdefault(ep.name, ep)
-        for mod in filter(None, os.environ.get("ICPBENCH_PLUGINS", "").split(",")):
-            importlib.import_module(mod.strip())  # modules register themselves
         self._discovered = True
+        import_plugin_modules()  # modules register themselves; failures are kept, not raised
 
     def register(self, name: str, cls: type | None = None) -> Any:
         """Register ``cls`` under ``name`` (usable as a decorator). Raises on name collisions."""
@@ -101,8 +101,11 @@ class Registry:
         if name in self._classes:
             return self._classes[name]
         if name not in self._entry_points:
+            failed = plugin_module_errors()
+            note = ("; " + "; ".join(f"{PLUGINS_ENV} module {m!r} did not load ({r})"
+                                     for m, r in failed.items())) if failed else ""
             raise InputError(
-                f"unknown {self.kind} {name!r}; valid {self.kind}s: {', '.join(self.names())}"
+                f"unknown {self.kind} {name!r}; valid {self.kind}s: {', '.join(self.names())}{note}"
             )
         try:
             cls = self._entry_points[name].load()
@@ -133,9 +136,11 @@ class Registry:
                              "(rows are stored under the name and resumed under the key)")
 
     def check_params(self, name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
-        """The settings ``params`` of plugin ``name``, checked and coerced (see :func:`check_params`)."""
+        """The settings ``params`` of plugin ``name``, checked and coerced (see :func:`check_params`)
+        and inside the ranges the class declares in ``param_ranges``."""
         cls = self.get(name)
-        return check_params(f"{self.kind} {name!r}", cls.param_types(), params or {})
+        return check_params(f"{self.kind} {name!r}", cls.param_types(), params or {},
+                            getattr(cls, "param_ranges", None) or {})
 
     def available(self, name: str) -> tuple[bool, str]:
         """(True, "") if ``name`` loads, else (False, reason)."""
@@ -181,6 +186,42 @@ class Registry:
         return items
 
 
+# -- modules named in ICPBENCH_PLUGINS -------------------------------------------------------------
+#: Environment variable naming extra plugin modules (comma-separated) that register themselves.
+PLUGINS_ENV = "ICPBENCH_PLUGINS"
+_module_errors: dict[str, dict[str, str]] = {}  # env value -> {module: reason}
+
+
+def import_plugin_modules() -> dict[str, str]:
+    """Import every module named in ``$ICPBENCH_PLUGINS`` (once per value of the variable).
+
+    A module that cannot be imported (unknown, or raising while it runs) does not stop anything:
+    its reason is kept and returned, ``icpbench list`` shows it, and a lookup of a name that is
+    not registered mentions it. Empty entries (``' , '``) are ignored.
+
+    Returns:
+        ``{module: reason}`` of the modules that did not load.
+    """
+    value = os.environ.get(PLUGINS_ENV, "")
+    if value in _module_errors:
+        return _module_errors[value]
+    errors: dict[str, str] = {}
+    _module_errors[value] = errors  # before importing: a module may look plugins up itself
+    for mod in (m.strip() for m in value.split(",")):
+        if not mod:
+            continue
+        try:
+            importlib.import_module(mod)
+        except Exception as exc:  # a plugin module's own error, whatever it is
+            errors[mod] = f"{type(exc).__name__}: {exc}"
+    return errors
+
+
+def plugin_module_errors() -> dict[str, str]:
+    """``{module: reason}`` of the ``$ICPBENCH_PLUGINS`` modules that did not load."""
+    return import_plugin_modules()
+
+
 # -- plugin settings ----------------------------------------------------------------------------
 def keyword_params(func: Callable[..., Any], skip: tuple[str, ...] = ()) -> dict[str, Any]:
     """The named parameters of ``func`` (``self``, ``*args``, ``**kwargs`` and ``skip`` left out)
@@ -200,7 +241,53 @@ def accepts_extra(func: Callable[..., Any]) -> bool:
     return any(p.kind is p.VAR_KEYWORD for p in inspect.signature(func).parameters.values())
 
 
-def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class Range:
+    """The valid values of a numeric plugin setting: ``lo <= v <= hi`` (``<`` where open)."""
+
+    lo: float = -math.inf
+    hi: float = math.inf
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def contains(self, v: float) -> bool:
+        """Whether ``v`` lies in the range."""
+        above = v > self.lo if self.lo_open else v >= self.lo
+        below = v < self.hi if self.hi_open else v <= self.hi
+        return above and below
+
+    def __str__(self) -> str:
+        lo = "" if self.lo == -math.inf else f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        hi = "" if self.hi == math.inf else f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        return " and ".join(x for x in (lo, hi) if x) or "finite"
+
+
+def _check_number(owner: str, key: str, v: Any, rng: Range | None) -> None:
+    """Every number a plugin setting holds must be finite, and inside ``rng`` where declared."""
+    nums = v if isinstance(v, list | tuple) else [v]
+    for x in nums:
+        if isinstance(x, bool) or not isinstance(x, int | float):
+            continue
+        if not math.isfinite(x):
+            raise InputError(f"setting {key!r} of {owner} must be a finite number"
+                             f"{'' if rng is None else f' ({rng})'}, got {x!r}")
+        if rng is not None and not rng.contains(x):
+            raise InputError(f"setting {key!r} of {owner} must be {rng}, got {x!r}")
+
+
+def check_ranges(owner: str, values: Mapping[str, Any], ranges: Mapping[str, Range]) -> None:
+    """Check the settings in ``values`` that ``ranges`` names (None passes; NaN/Inf never).
+
+    Raises:
+        InputError: a number out of its range; the message names the setting and ``owner``.
+    """
+    for k, rng in ranges.items():
+        if values.get(k) is not None:
+            _check_number(owner, k, values[k], rng)
+
+
+def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any],
+                 ranges: Mapping[str, Range] | None = None) -> dict[str, Any]:
     """Check user settings against the settings a plugin declares; return them coerced.
 
     Args:
@@ -208,10 +295,12 @@ def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any
         types_: setting name -> type hint (from the plugin's ``param_types()``).
         params: the user's settings; strings that spell a number are turned into numbers where the
             hint asks for one (``"1e-3"`` for a float), numbers into strings where it asks for text.
+        ranges: setting name -> :class:`Range` (the plugin's ``param_ranges``). Whatever the
+            ranges, a number (or a number in a list) that is NaN or infinite is refused.
 
     Raises:
-        InputError: an unknown setting (the message lists the valid ones) or a value of the wrong
-            type (``pgd.steps=abc``).
+        InputError: an unknown setting (the message lists the valid ones), a value of the wrong
+            type (``pgd.steps=abc``), or a number that is not finite or out of its range.
     """
     unknown = sorted(set(params) - set(types_))
     if unknown:
@@ -224,6 +313,7 @@ def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any
         except (TypeError, ValueError) as exc:
             raise InputError(f"setting {k!r} of {owner} must be {describe_type(types_[k])}, "
                              f"got {v!r}") from exc
+        _check_number(owner, k, out[k], (ranges or {}).get(k))
     return out
 
 

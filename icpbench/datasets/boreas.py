@@ -39,6 +39,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from icpbench.core.errors import InputError
+from icpbench.core.filenames import plain_name
 from icpbench.core.se3 import se3_exp
 from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
@@ -215,7 +216,8 @@ class BoreasDataset(Dataset):
             repeats = [repeats]
         if repeats is None:
             repeats = sorted(p.name for p in root.glob("boreas-*") if p.is_dir() and p.name != teach)
-        repeats = list(repeats)
+        repeats = [plain_name(r, "Boreas setting repeats") for r in repeats]
+        teach = plain_name(teach, "Boreas setting teach")
         if not repeats:
             raise InputError(f"no repeat sequences: {root} holds no boreas-* folder besides {teach}")
         if teach in repeats:
@@ -264,11 +266,11 @@ class BoreasDataset(Dataset):
         return self.keyframes[np.abs(d_kf - d_kf[j]) <= self._gen["submap_window_m"]]
 
     def _inputs_key(self, drive: _Drive, k: int, j: int) -> str:
-        """A key of every lidar file a sample reads (name, size, mtime): a replaced file is never
-        served from a stale cache entry."""
+        """A key of every lidar file a sample reads (name and a hash of its bytes): a rewritten
+        file is never served from a stale cache entry, whatever its modification time."""
         files = [drive.bins[k], *(self.teach.bins[int(m)] for m in self._submap_keyframes(j))]
         try:
-            stats = [[f.name, f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+            stats = [[f.name, sm.file_digest(f)] for f in files]
         except OSError as exc:
             raise InputError(f"Boreas lidar scan {exc.filename} cannot be read ({exc.strerror})") from exc
         return sm.params_hash({"files": stats}, FORMAT_VERSION)

@@ -27,6 +27,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from icpbench.core.errors import InputError
+from icpbench.core.filenames import plain_name
+from icpbench.core.registry import Range, check_ranges
 from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
@@ -37,6 +39,25 @@ FORMAT_VERSION = 1
 def read_kitti_bin(path: Path) -> np.ndarray:
     """Points (K, 3) float64 (x, y, z in the Velodyne frame) of a KITTI ``.bin`` scan."""
     return sm.read_float32_records(path, 4, "KITTI scan")[:, :3]
+
+
+#: Largest deviation of ``R^T R`` from the identity (and of ``det R`` from 1) accepted in a pose or
+#: calibration read from a text file (KITTI writes 6-7 significant digits).
+RIGID_TOL = 1e-3
+
+
+def check_rigid(T: np.ndarray, where: str, what: str) -> None:
+    """Raise :class:`InputError` naming ``where`` (file:line) unless the 4x4 ``T`` is a rigid
+    transform: finite, rotation block orthonormal with determinant +1 (to :data:`RIGID_TOL`)."""
+    if not np.all(np.isfinite(T)):
+        raise InputError(f"{where}: {what} has NaN or Inf values")
+    R = T[:3, :3]
+    dev = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if dev > RIGID_TOL or abs(det - 1.0) > RIGID_TOL:
+        raise InputError(f"{where}: {what} is not a rigid transform (its rotation block has "
+                         f"max |R^T R - I| = {dev:.3g} and det {det:.3g}; a rotation has 0 and 1): "
+                         "the file is corrupt or not in the KITTI format")
 
 
 def read_calib_tr(path: Path) -> np.ndarray:
@@ -56,6 +77,7 @@ def read_calib_tr(path: Path) -> np.ndarray:
                 raise InputError(f"{path}:{n}: Tr needs 12 numbers (3x4), got {M.size}")
             T = np.eye(4)
             T[:3] = M.reshape(3, 4)
+            check_rigid(T, f"{path}:{n}", "Tr")
             return T
     raise InputError(f"{path} has no 'Tr:' line (the Velodyne-to-camera-0 transform)")
 
@@ -81,6 +103,7 @@ def read_kitti_poses(path: Path) -> np.ndarray:
                              "NaN or Inf value(s); a pose needs 12 finite numbers")
         T = np.eye(4)
         T[:3] = vals.reshape(3, 4)
+        check_rigid(T, f"{path}:{n}", "pose")
         poses.append(T)
     if not poses:
         raise InputError(f"{path} holds no poses")
@@ -100,11 +123,18 @@ class KittiDataset(Dataset):
         map_voxel_m, map_radius_m, normal_radius_m: submap voxel, crop radius, normal PCA radius.
         offset_trans_m, offset_rot_deg: the random initial offset (paper: 0.3 m, 10 deg).
         cache_dir: cache root (built submaps are cached, keyed by the parameters, the pose and
-            calibration files and the name, size and mtime of every scan file a sample reads).
+            calibration files and the name and contents of every scan file a sample reads).
         split: recorded only; KITTI has no split, choose sequences for training and testing.
     """
 
     name: ClassVar[str] = "kitti"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "stride": Range(1), "window": Range(1), "map_stride": Range(1),
+        "n_points": Range(6), "scan_voxel_m": Range(0.0, lo_open=True),
+        "min_range_m": Range(0.0), "map_voxel_m": Range(0.0, lo_open=True),
+        "map_radius_m": Range(0.0, lo_open=True), "normal_radius_m": Range(0.0, lo_open=True),
+        "offset_trans_m": Range(0.0, 100.0), "offset_rot_deg": Range(0.0, 180.0),
+    }
     description: ClassVar[str] = "KITTI odometry layout: scan i vs a submap of neighbouring frames"
     icp_preset: ClassVar[str] = "lidar"
 
@@ -114,7 +144,9 @@ class KittiDataset(Dataset):
                  min_range_m: float = 2.5, map_voxel_m: float = 0.25, map_radius_m: float = 50.0,
                  normal_radius_m: float = 1.0, offset_trans_m: float = 0.3,
                  offset_rot_deg: float = 10.0, cache_dir: str | Path | None = None) -> None:
+        check_ranges("dataset 'kitti'", locals(), self.param_ranges)
         root = Path(root)
+        sequence = plain_name(sequence, "KITTI setting sequence")
         if not root.is_dir():
             raise InputError(f"KITTI root {root} is not a folder")
         seq_dir = root if (root / "velodyne").is_dir() else root / "sequences" / str(sequence)
@@ -146,10 +178,8 @@ class KittiDataset(Dataset):
         self.frame_ids = frame_ids
         self.sequence = str(sequence)
         fingerprint = {"seq_dir": str(seq_dir.resolve()), "poses": str(Path(poses).resolve()),
-                       "n_scans": len(self.bins),
-                       "poses_stat": [Path(poses).stat().st_size, Path(poses).stat().st_mtime_ns],
-                       "calib_stat": [(seq_dir / "calib.txt").stat().st_size,
-                                      (seq_dir / "calib.txt").stat().st_mtime_ns]}
+                       "n_scans": len(self.bins), "poses_digest": sm.file_digest(Path(poses)),
+                       "calib_digest": sm.file_digest(seq_dir / "calib.txt")}
         self._gen = {"window": int(window), "map_stride": int(map_stride), "n_points": int(n_points),
                      "scan_voxel_m": float(scan_voxel_m), "min_range_m": float(min_range_m),
                      "map_voxel_m": float(map_voxel_m), "map_radius_m": float(map_radius_m),
@@ -178,13 +208,11 @@ class KittiDataset(Dataset):
         return [j for j in range(lo, hi, g["map_stride"]) if j != k]
 
     def _inputs_key(self, k: int) -> str:
-        """A key of the contents of every scan file sample k reads (name, size, mtime), so that a
-        replaced or rewritten file is not served from a stale cache entry."""
-        stats = []
-        for j in [k, *self._neighbours(k)]:
-            st = self.bins[j].stat()
-            stats.append([self.bins[j].name, st.st_size, st.st_mtime_ns])
-        return sm.params_hash({"files": stats}, FORMAT_VERSION)
+        """A key of the contents of every scan file sample k reads (name and a hash of the bytes),
+        so that a rewritten file is never served from a stale cache entry, even one rewritten
+        with the same size and its old modification time (``cp -p``, ``rsync -a``)."""
+        return sm.params_hash({"files": [[self.bins[j].name, sm.file_digest(self.bins[j])]
+                                         for j in [k, *self._neighbours(k)]]}, FORMAT_VERSION)
 
     def __getitem__(self, i: int) -> Sample:
         if not -len(self) <= i < len(self):

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from icpbench.core.errors import InputError
+from icpbench.core.filenames import plain_name
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.lidar_model import cast_scan
 
@@ -50,7 +51,7 @@ def write_kitti_sequence(ds: Any, root: str | Path, *, s_start_m: float, n_frame
     if n_frames < 2 or not spacing_m > 0:
         raise InputError("need at least 2 frames and a positive spacing")
     root = Path(root)
-    seq = root / "sequences" / sequence
+    seq = root / "sequences" / plain_name(sequence, "sequence")
     (seq / "velodyne").mkdir(parents=True, exist_ok=True)
     (root / "poses").mkdir(parents=True, exist_ok=True)
     scenes = [ds._static_scene(), ds._cars_scene(0)]

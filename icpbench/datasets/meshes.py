@@ -488,8 +488,6 @@ class MeshFolderDataset(Dataset):
         dup = {k for k in keys if keys.count(k) > 1} if len(set(keys)) < len(keys) else set()
         out = []
         for p, k in zip(files, keys, strict=True):
-            if p.stat().st_size == 0:
-                raise InputError(f"mesh file {p} is empty (0 bytes); delete it or replace it")
             if k in dup:  # e.g. chair.obj next to chair.ply: keep the suffix to tell them apart
                 k = p.relative_to(self.root).as_posix()
             rel = p.relative_to(self.root).parts

@@ -25,17 +25,21 @@ from scipy.spatial.transform import Rotation
 from icpbench.core.errors import InputError
 from icpbench.core.types import Sample
 
-
 # ---------------------------------------------------------------------------------------------
 # Geometry helpers
 # ---------------------------------------------------------------------------------------------
+#: Largest plausible coordinate of a lidar point (metres); beyond it a scan file is corrupt.
+MAX_COORD_M = 1e5
+
+
 def read_float32_records(path: str | Path, fields: int, what: str) -> np.ndarray:
     """Points (K, fields) float64 of a headerless little-endian float32 lidar file (KITTI: 4 fields,
     Boreas: 6). The first three fields are x, y, z.
 
     Raises:
         InputError: missing or empty file, a size that is not a whole number of records
-            (truncated), or NaN/Inf coordinates (corrupt); the message names the file.
+            (truncated), or NaN/Inf coordinates or coordinates beyond :data:`MAX_COORD_M`
+            (corrupt); the message names the file.
     """
     path = Path(path)
     if not path.is_file():
@@ -50,7 +54,20 @@ def read_float32_records(path: str | Path, fields: int, what: str) -> np.ndarray
     bad = int((~np.isfinite(rec[:, :3])).any(1).sum())
     if bad:
         raise InputError(f"{what} {path} is corrupt: {bad} point(s) have NaN or Inf coordinates")
+    far = int((np.abs(rec[:, :3]) > MAX_COORD_M).any(1).sum())
+    if far:
+        raise InputError(f"{what} {path} is corrupt: {far} point(s) have a coordinate beyond "
+                         f"{MAX_COORD_M:g} m")
     return rec
+
+
+def file_digest(path: Path) -> str:
+    """A hash of the bytes of ``path`` (BLAKE2b, 16 bytes, hex)."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:

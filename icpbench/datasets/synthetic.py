@@ -15,6 +15,9 @@ from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset
 from icpbench.datasets.synthetic_scene import scene_sample
 
+#: Largest sensor noise (metres) of the synthetic scenes; beyond it a scan is no longer a scene.
+MAX_NOISE_M = 10.0
+
 
 class SyntheticSceneDataset(Dataset):
     """Lidar-like synthetic scenes for tests and demos (no ray casting)."""
@@ -32,8 +35,9 @@ class SyntheticSceneDataset(Dataset):
         for key, n in (("n_scan", n_scan), ("n_map", n_map)):
             if n < 6:
                 raise InputError(f"{key} must be >= 6 points (a 6-DoF pose needs 6), got {n}")
-        if not (math.isfinite(noise_m) and noise_m >= 0):
-            raise InputError(f"noise_m must be a finite number of metres >= 0, got {noise_m}")
+        if not (math.isfinite(noise_m) and 0 <= noise_m <= MAX_NOISE_M):
+            raise InputError(f"noise_m must be a number of metres from 0 to {MAX_NOISE_M:g} (the "
+                             f"scenes are tens of metres across), got {noise_m}")
         super().__init__(seed=seed, split=split, n_samples=n_samples, n_scan=n_scan, n_map=n_map,
                          noise_m=noise_m)
         self.n_samples, self.n_scan, self.n_map, self.noise_m = n_samples, n_scan, n_map, noise_m

@@ -16,6 +16,7 @@ table of the same shape gives each cell's counts (runs / converged / pairs). The
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -427,7 +428,52 @@ def load_notes(df: pd.DataFrame) -> list[str]:
     if df.attrs.get("duplicate_rows"):
         out.append(f"warning: {df.attrs['duplicate_rows']} row(s) stored twice under the same key; "
                    "the last of each was used")
+    return out + grid_notes(df) + provenance_notes(df)
+
+
+def grid_notes(df: pd.DataFrame) -> list[str]:
+    """Warnings that the table covers only part of its run's grid: a run still writes to the
+    folder, the run did not finish (interrupted, or stopped by an error), or rows of the grid
+    (configured attacks x targets x budgets x seeds over the samples present) are missing."""
+    out = []
+    if df.attrs.get("in_use"):
+        out.append("warning: a run is still writing to this folder; the table shows only the rows "
+                   "written so far")
+    elif df.attrs.get("finished") is False:
+        out.append("warning: the run that wrote this folder did not finish (interrupted or "
+                   "stopped); the table covers part of its grid; re-run the same `icpbench run` "
+                   "command to complete it")
+    cfg = df.attrs.get("config") or {}
+    axes = {"attack": cfg.get("attacks"), "target": cfg.get("targets"),
+            "budget": cfg.get("budgets"), "seed": cfg.get("seeds")}
+    if all(isinstance(v, list) and v for v in axes.values()) and "all" not in axes["attack"]:
+        expected = (df["sample_id"].nunique() * len(set(axes["attack"])) * len(set(axes["target"]))
+                    * len({float(b) for b in axes["budget"]}) * len(set(axes["seed"])))
+        have = len(df[df["attack"].isin(axes["attack"]) & df["target"].isin(axes["target"])
+                      & df["budget"].isin([float(b) for b in axes["budget"]])
+                      & df["seed"].isin(axes["seed"])])
+        if have < expected:
+            out.append(f"warning: the grid is incomplete: {expected - have} of {expected} rows "
+                       "(sample x attack x target x budget x seed) are missing; re-run the same "
+                       "`icpbench run` command to compute them")
     return out
+
+
+def provenance_notes(df: pd.DataFrame) -> list[str]:
+    """A warning when the rows were written by runs of different software (package versions or
+    commit), as the manifest's ``provenance`` records per range of rows."""
+    from icpbench.harness.results import software_of
+
+    entries = df.attrs.get("provenance") or []
+    kinds = {software_of(e) for e in entries}
+    if len(kinds) <= 1:
+        return []
+    starts = ", ".join(f"from row {e.get('rows_from')}: commit "
+                       f"{((e.get('git') or {}).get('commit') or 'unknown')[:10]}, icpbench "
+                       f"{(e.get('versions') or {}).get('icpbench', '?')}, torch "
+                       f"{(e.get('versions') or {}).get('torch', '?')}" for e in entries)
+    return [f"warning: the rows were written by {len(kinds)} different software versions or "
+            f"commits (resumed runs; manifest.json 'provenance'): {starts}"]
 
 
 #: First-line prefixes of the tables :func:`render` writes (Table 1 and the transfer table).
@@ -441,33 +487,60 @@ def is_table_text(text: str) -> bool:
 
 
 def check_table_destination(path: str | Path) -> None:
-    """Refuse to write a table over a file of a results folder that is not a table of ours.
+    """Refuse any ``table --out`` destination but a new file or a table ``icpbench table`` wrote.
+
+    An existing file is overwritten only when it is a regular file (not a link) whose first line is
+    that of one of our tables (:func:`is_table_text`); a results folder's own files
+    (``results.csv``, ``manifest.json``, its lock) are refused even when reached through a link or
+    a linked folder.
 
     Raises:
-        InputError: ``path`` is a results folder's own file (``results.csv``, ``manifest.json``,
-            its lock), or an existing file in a results folder that is not a table written by
-            ``icpbench table``.
+        InputError: ``path`` is empty, a folder, a link, a results folder's own file, or an
+            existing file that is not a table written by ``icpbench table``.
     """
     from icpbench.harness.results import STORE_FILES, is_results_dir
 
     p = Path(path)
     if str(path) == "":
         raise InputError("--out is empty ('')")
+    if p.is_symlink():
+        raise InputError(f"refusing to write a table through the link {p} (it points at "
+                         f"{os.readlink(p)}); give the path of a new file or of a table written "
+                         "by `icpbench table`")
     if p.is_dir():
         raise InputError(f"--out {p} is a folder; give a file name, e.g. {p / 'table1.md'}")
-    if not is_results_dir(p.parent):
-        return
-    if p.name in STORE_FILES:
+    real = p.resolve()
+    if real.name in STORE_FILES and is_results_dir(real.parent):
         raise InputError(f"refusing to write a table over {p}: it is a file of the results folder "
-                         f"{p.parent} (written by `icpbench run`); choose another --out")
+                         f"{real.parent} (written by `icpbench run`); choose another --out")
     if p.exists():
+        if not p.is_file():
+            raise InputError(f"refusing to write a table over {p}: it is not a regular file")
         try:
-            ours = is_table_text(p.read_text(errors="strict"))
+            with open(p, "rb") as f:
+                ours = is_table_text(f.read(4096).decode("utf-8", errors="strict"))
         except (OSError, UnicodeDecodeError):
             ours = False
         if not ours:
-            raise InputError(f"refusing to overwrite {p}: it is in the results folder {p.parent} "
-                             "and is not a table written by `icpbench table`; choose another --out")
+            raise InputError(f"refusing to overwrite {p}: it is not a table written by "
+                             "`icpbench table` (only a new file or such a table is written); "
+                             "choose another --out")
+
+
+def write_table(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` after :func:`check_table_destination`, through a temporary file
+    in the same folder renamed over it (a link at ``path`` is refused, never followed)."""
+    p = Path(path)
+    check_table_destination(p)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "x") as f:
+            f.write(text)
+        check_table_destination(p)  # again, just before the rename
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def render(frame: pd.DataFrame, fmt: Format = "md") -> str:

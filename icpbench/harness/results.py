@@ -37,6 +37,10 @@ STORE_FILES = (RESULTS_FILE, MANIFEST_FILE, LOCK_FILE)
 #: Prefix of the ``error`` of rows of a sample whose input (file) is bad. Such rows are not final:
 #: a re-run tries the sample again (e.g. after the file was fixed) and its new rows replace them.
 BAD_INPUT = "bad input: "
+#: Prefix of the ``error`` of rows of an attack that could not run for a reason the user can fix
+#: (a missing or unreadable checkpoint: an icpbench user error). Like :data:`BAD_INPUT` rows they
+#: are not final: the next run of the same command tries them again.
+NOT_RUN = "not run: "
 KEY_COLUMNS = ("sample_id", "attack", "target", "budget", "seed")
 
 #: Columns every row has, in order. ``meta`` and ``extra`` hold JSON dicts (dataset metadata such as
@@ -103,7 +107,7 @@ def _complete(row: Mapping[str, Any]) -> bool:
 
 def _final(row: Mapping[str, Any]) -> bool:
     """A complete row that a re-run must not recompute (not the row of a bad input file)."""
-    return _complete(row) and not str(row.get("error") or "").startswith(BAD_INPUT)
+    return _complete(row) and not str(row.get("error") or "").startswith((BAD_INPUT, NOT_RUN))
 
 
 class ResultsStore:
@@ -190,6 +194,17 @@ def _json_default(v: Any) -> Any:
     return str(v)
 
 
+def attacks_not_run(df: pd.DataFrame) -> dict[str, str]:
+    """``{attack: message}`` of the attacks none of whose rows ran because of a user error
+    (:data:`NOT_RUN`), with the first such message."""
+    out = {}
+    for attack, g in df.groupby("attack"):
+        errs = g["error"].fillna("").astype(str) if "error" in g else pd.Series([""] * len(g))
+        if len(g) and errs.str.startswith(NOT_RUN).all():
+            out[str(attack)] = errs.iloc[0][len(NOT_RUN):]
+    return out
+
+
 def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     """Load a results directory (or CSV file) as a DataFrame.
 
@@ -222,8 +237,12 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     df = df[~incomplete].copy()
     if df.empty:
         raise InputError(f"{p} holds no complete result rows ({n_incomplete} incomplete)")
-    df["seed"] = df["seed"].astype(int)
-    df["budget"] = df["budget"].astype(float)
+    try:
+        df["seed"] = df["seed"].astype("int64")
+        df["budget"] = df["budget"].astype(float)
+    except (ValueError, OverflowError, TypeError) as exc:
+        raise InputError(f"{p} holds a seed or budget that is not a number icpbench can read "
+                         f"(seeds must be 64-bit integers: {exc})") from exc
     n_before = len(df)
     df = df.drop_duplicates(list(KEY_COLUMNS), keep="last").reset_index(drop=True)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
@@ -239,7 +258,69 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
                 df[f"{col}.{k}"] = [d.get(k) for d in parsed]
     df.attrs["incomplete_rows"] = n_incomplete
     df.attrs["duplicate_rows"] = n_before - len(df)
+    manifest = read_manifest(p.parent) if (p.parent / MANIFEST_FILE).is_file() else None
+    if manifest is not None:
+        df.attrs["config"] = manifest.get("config") or {}
+        df.attrs["finished"] = manifest.get("finished")  # None: a manifest older than the flag
+        df.attrs["provenance"] = manifest.get("provenance") or []
+    df.attrs["in_use"] = folder_in_use(p.parent)
     return df
+
+
+def folder_in_use(out_dir: str | Path) -> bool:
+    """Whether a run holds the lock of the results folder ``out_dir`` now (it is still writing)."""
+    path = Path(out_dir) / LOCK_FILE
+    if not path.is_file():
+        return False
+    with open(path) as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    return False
+
+
+#: Manifest fields that describe the software and machine that wrote rows.
+PROVENANCE_FIELDS = ("versions", "git", "platform")
+
+
+def count_rows(out_dir: str | Path) -> int:
+    """Data lines in the results CSV of ``out_dir`` (0 when there is none)."""
+    path = Path(out_dir) / RESULTS_FILE
+    if not path.is_file() or path.stat().st_size == 0:
+        return 0
+    with open(path, "rb") as f:
+        return max(sum(1 for _ in f) - 1, 0)
+
+
+def merge_provenance(old: Mapping[str, Any] | None, new: Mapping[str, Any],
+                     rows_before: int) -> dict[str, Any]:
+    """The provenance fields of a manifest being (re)written by a run that starts with
+    ``rows_before`` rows in the store.
+
+    ``versions``, ``git`` and ``platform`` stay those of the run that created the folder (a resumed
+    run never relabels old rows); ``provenance`` lists one entry per run that wrote to the folder:
+    the first data line of the CSV it may have written (``rows_from``, 0-based) with its own
+    versions, commit and platform, so each row's software is known (rows of a run that appended
+    nothing are never assigned to it: the next entry starts at the same line).
+    """
+    entry = {"rows_from": int(rows_before), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+             **{k: new.get(k) for k in PROVENANCE_FIELDS}}
+    if old is None:
+        return {**{k: new.get(k) for k in PROVENANCE_FIELDS}, "provenance": [entry]}
+    history = list(old.get("provenance") or
+                   [{"rows_from": 0, "started": old.get("created"),
+                     **{k: old.get(k) for k in PROVENANCE_FIELDS}}])
+    return {**{k: old.get(k, new.get(k)) for k in PROVENANCE_FIELDS},
+            "provenance": [*history, entry]}
+
+
+def software_of(entry: Mapping[str, Any]) -> tuple:
+    """What makes two provenance entries' rows comparable: the package versions and the commit
+    (with its dirty flag)."""
+    git = entry.get("git") or {}
+    return (json.dumps(entry.get("versions"), sort_keys=True), git.get("commit"), git.get("dirty"))
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> None:
@@ -262,4 +343,6 @@ def read_manifest(out_dir: str | Path) -> dict[str, Any] | None:
     try:
         return json.loads(p.read_text())
     except json.JSONDecodeError as exc:
-        raise InputError(f"{p} is not valid JSON ({exc}); delete it or use a new --out") from exc
+        raise InputError(f"{p} is not valid JSON ({exc}), so what made the rows beside it is "
+                         f"unknown and they cannot be resumed; use a new --out (a results.csv "
+                         "without its manifest cannot be resumed either)") from exc

@@ -34,7 +34,7 @@ import torch
 
 from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput, validate_budget
 from icpbench.core import registry
-from icpbench.core.errors import InputError
+from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.se3 import POSE_ERROR_COLUMNS, pose_error_components
 from icpbench.core.types import Batch, Sample
 from icpbench.datasets.base import Dataset
@@ -43,12 +43,16 @@ from icpbench.harness.progress import RunProgress
 from icpbench.harness.results import (
     BAD_INPUT,
     MANIFEST_FILE,
+    NOT_RUN,
     RESULTS_FILE,
     ResultsStore,
+    count_rows,
     lock_results_dir,
+    merge_provenance,
     read_manifest,
     write_json_atomic,
 )
+from icpbench.harness.settings import SEED_MAX, SEED_MIN, check_run_fields, seed_ok
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.self_surrogate import self_surrogate
@@ -137,9 +141,12 @@ class RunConfig:
             raise InputError(f"batch size must be >= 1, got {self.batch_size}")
         if self.threads < 1:
             raise InputError(f"--threads must be >= 1, got {self.threads}")
-        if not self.seeds or not all(isinstance(s, int) and not isinstance(s, bool)
-                                     for s in self.seeds):
-            raise InputError(f"seeds must be a non-empty list of integers, got {self.seeds!r}")
+        if not self.seeds or not all(seed_ok(s) for s in self.seeds):
+            raise InputError(f"seeds (--seed) must be a non-empty list of integers from "
+                             f"{SEED_MIN} to {SEED_MAX}, got {self.seeds!r}")
+        if not seed_ok(self.dataset_seed) or self.dataset_seed < 0:
+            raise InputError(f"dataset_seed must be an integer from 0 to {SEED_MAX}, got "
+                             f"{self.dataset_seed!r}")
         self._check_params()
         check_executor(self.executor)
         return self
@@ -174,7 +181,7 @@ class RunConfig:
         if unknown:
             raise InputError(f"{source}: unknown setting(s) {', '.join(map(repr, unknown))}; valid: "
                              f"{', '.join(cls.field_names())}")
-        return cls(**{k: copy.deepcopy(v) for k, v in data.items()})
+        return cls(**{k: copy.deepcopy(v) for k, v in check_run_fields(data, source).items()})
 
     @classmethod
     def from_file(cls, path: str | Path) -> RunConfig:
@@ -189,9 +196,12 @@ class RunConfig:
             data = yaml.safe_load(p.read_text())  # JSON is YAML
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise InputError(f"config file {p} is not valid YAML or JSON ({exc})") from exc
+        if data is None:  # an empty file must not start the default run
+            raise InputError(f"config file {p} is empty; give at least one setting (valid: "
+                             f"{', '.join(cls.field_names())})")
         if isinstance(data, Mapping) and "config" in data and "versions" in data:  # a manifest
             data = data["config"]
-        return cls.from_mapping(data or {}, str(p))
+        return cls.from_mapping(data, f"config file {p}")
 
 
 #: RunConfig fields that choose how a run is executed, not what it computes (ignored when a resumed
@@ -421,6 +431,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                     f"{out_dir} holds results made with other files for attack(s) "
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
         store = ResultsStore(out_dir)
+        manifest.update(merge_provenance(old, manifest, count_rows(out_dir)))
+        manifest["finished"] = False
         manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
         manifest["surrogate_settings"] = (
             worker.surrogate.settings() if worker.self_surrogates is None else
@@ -430,9 +442,16 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         write_json_atomic(out_dir / MANIFEST_FILE, manifest)
         try:
             _run_items(cfg, worker, store, manifest, progress=progress, on_unit=on_unit)
-        finally:
+        except BaseException:
+            if old is None and len(store) == 0:  # refused before any row: leave no manifest
+                (out_dir / MANIFEST_FILE).unlink(missing_ok=True)
+                raise
             manifest["completed_rows"] = len(store)
             write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+            raise
+        manifest["completed_rows"] = len(store)
+        manifest["finished"] = True
+        write_json_atomic(out_dir / MANIFEST_FILE, manifest)
     return store
 
 
@@ -544,6 +563,8 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
             attack_err = ""
         except Exception as exc:  # a crashing plugin becomes failed rows, the run goes on
             out, attack_err = None, f"{type(exc).__name__}: {exc}"
+            if isinstance(exc, CheckpointError):  # the user can fix it: retried by the next run
+                attack_err = NOT_RUN + attack_err
         attack_time = (time.perf_counter() - t0) / len(batch)
         for tname in names:
             rows += _target_rows(batch, attack, tname, targets[tname], out, attack_err,

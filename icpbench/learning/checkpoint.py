@@ -142,7 +142,27 @@ def _refusal_reason(msg: str) -> str:
     return m.group(1).strip() if m else msg.splitlines()[0]
 
 
+def _no_unsafe_advice(text: str) -> str:
+    """``text`` without torch's sentences that advise loading with ``weights_only=False``."""
+    parts = re.split(r"(?<=[.!?])\s+|\n+", text)
+    return " ".join(p for p in parts if "weights_only" not in p or "=True" in p).strip()
+
+
+def check_device(device: str | torch.device) -> None:
+    """Raise :class:`CheckpointError` when ``device`` names an accelerator this machine lacks
+    (checked before loading, so that the failure is not reported as a corrupt file)."""
+    kind = torch.device(device).type
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise CheckpointError(f"device {str(device)!r} was asked for, but CUDA is not available on "
+                              "this machine; use device=cpu (e.g. --attack-param "
+                              "generator.device=cpu)")
+    if kind == "mps" and not torch.backends.mps.is_available():
+        raise CheckpointError(f"device {str(device)!r} was asked for, but MPS is not available on "
+                              "this machine; use device=cpu")
+
+
 def _load_state(path: Path, map_location: str | torch.device) -> dict[str, torch.Tensor]:
+    check_device(map_location)
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Detected pickle protocol")
@@ -154,12 +174,15 @@ def _load_state(path: Path, map_location: str | torch.device) -> dict[str, torch
                 f"({_refusal_reason(str(e))}); a generator checkpoint must be a plain state dict "
                 "written by save_checkpoint. Do not load it unsafely unless you trust its source."
             ) from e
-        raise CheckpointError(f"{path} is corrupt or not a file written by torch.save (the safe "
-                              f"unpickler stopped: {_refusal_reason(str(e))})") from e
+        raise CheckpointError(
+            f"{path} is refused by safe loading (torch.load weights_only=True stopped: "
+            f"{_no_unsafe_advice(_refusal_reason(str(e)))}): it is corrupt or not a file written "
+            "by torch.save; it may be a pickle that carries code. Do not load it unsafely unless "
+            "you trust its source.") from e
     except Exception as e:  # torch raises OSError, EOFError, RuntimeError, KeyError, ... on bad bytes
         raise CheckpointError(
             f"{path} is truncated or corrupt and cannot be read by torch.load "
-            f"({type(e).__name__}: {e}); re-download or re-save it") from e
+            f"({type(e).__name__}: {_no_unsafe_advice(str(e))}); re-download or re-save it") from e
     if not isinstance(state, dict) or not all(
             isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in state.items()):
         raise CheckpointError(f"{path} does not contain a state dict (a dict of name -> tensor), "

@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import time
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -37,7 +39,7 @@ from icpbench.core.projection import project_to_ball
 from icpbench.core.se3 import pose_error, pose_error_components
 from icpbench.core.types import Batch
 from icpbench.harness.progress import progress_bar
-from icpbench.harness.results import write_json_atomic
+from icpbench.harness.results import lock_results_dir, write_json_atomic
 from icpbench.learning import distributed as ddp
 from icpbench.learning.losses import adversarial_loss, reconstruction_loss, weights
 from icpbench.learning.prior import prior_channels, sector_prior
@@ -157,10 +159,50 @@ def _load_split(cfg: TrainConfig, split: str, k: int, ctx: ddp.DistContext | Non
 
 
 def _budgets(cfg: TrainConfig) -> torch.Tensor:
-    b = torch.as_tensor(cfg.budgets, dtype=torch.float64)
-    if b.numel() == 0 or not torch.isfinite(b).all() or (b <= 0).any():
-        raise InputError(f"budgets must be positive numbers, got {cfg.budgets}")
-    return b
+    from icpbench.attacks.base import validate_budget
+
+    if not isinstance(cfg.budgets, list | tuple) or not cfg.budgets:
+        raise InputError(f"budgets (--budgets) must be a non-empty list of numbers, got "
+                         f"{cfg.budgets!r}")
+    return torch.as_tensor([validate_budget(b) for b in cfg.budgets], dtype=torch.float64)
+
+
+#: Largest learning rate accepted (AdamW steps of this size already throw the weights about).
+MAX_LR = 1.0
+
+
+def check_train_config(cfg: TrainConfig) -> None:
+    """Check every setting that can be checked without data, before anything is written.
+
+    Raises:
+        InputError: a setting out of range (the message names its flag), unknown generator
+            settings (listing the valid ones), or an unknown dataset, ICP preset or weight preset.
+    """
+    from dataclasses import fields
+
+    from icpbench.learning.network import GeneratorConfig, generator_config
+
+    for flag, v, lo in (("--epochs", cfg.epochs, 0), ("--pretrain-epochs", cfg.pretrain_epochs, 0),
+                        ("--train-samples", cfg.train_samples, 1),
+                        ("--eval-samples", cfg.eval_samples, 1),
+                        ("--batch-size", cfg.batch_size, 1), ("--threads", cfg.threads, 1)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise InputError(f"{flag} must be an integer >= {lo}, got {v!r}")
+    if cfg.pretrain_epochs + cfg.epochs < 1:
+        raise InputError(f"--epochs + --pretrain-epochs must be >= 1 (nothing would be trained), "
+                         f"got {cfg.epochs} + {cfg.pretrain_epochs}")
+    if not (isinstance(cfg.lr, int | float) and math.isfinite(cfg.lr) and 0 <= cfg.lr <= MAX_LR):
+        raise InputError(f"--lr must be a number in [0, {MAX_LR:g}], got {cfg.lr!r}")
+    _budgets(cfg)
+    valid = sorted(f.name for f in fields(GeneratorConfig))
+    unknown = sorted(set(cfg.generator_overrides) - set(valid))
+    if unknown:
+        raise InputError(f"unknown generator setting(s) {', '.join(map(repr, unknown))} "
+                         f"(--generator-param); valid: {', '.join(valid)}")
+    weights(cfg.weights)
+    registry.datasets.check_params(cfg.dataset, cfg.dataset_params)
+    generator_config(cfg.generator_preset, **cfg.generator_overrides)
+    PointToPlaneICP(cfg.icp_preset, soft_dmax=cfg.soft_dmax, backprop=cfg.icp_backprop)
 
 
 def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
@@ -184,16 +226,37 @@ def train(cfg: TrainConfig, out_dir: str | Path, *, progress: bool = True,
 
 def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, progress: bool,
            log: Callable[[str], None] | None) -> dict[str, Any]:
-    from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
-    from icpbench.learning.network import Generator, add_prior, generator_config
-
-    out.mkdir(parents=True, exist_ok=True)
+    """Check, lock ``out``, train; a run that fails before its first checkpoint removes the
+    files it created (so the corrected command is not refused as another configuration)."""
+    check_train_config(cfg)  # before anything is written: a refused command leaves no trace
     cfg_path = out / "train_config.json"
     if cfg_path.exists() and json.loads(cfg_path.read_text()) != asdict(cfg):
         raise InputError(f"{out} holds a training run with another configuration; use a new --out")
     if not cfg_path.exists() and any((out / f).exists() for f in ("generator.pt", "generator.json")):
         raise InputError(f"{out} already holds a generator.pt/.json that no training run in this "
                          "folder wrote; training would overwrite it: use a new --out")
+    out.mkdir(parents=True, exist_ok=True)
+    with lock_results_dir(out) if ctx.is_main else nullcontext():
+        if cfg_path.exists() and json.loads(cfg_path.read_text()) != asdict(cfg):  # again, locked
+            raise InputError(f"{out} holds a training run with another configuration; use a new "
+                             "--out")
+        fresh = not cfg_path.exists()
+        try:
+            return _train_locked(cfg, out, ctx, device, progress=progress, log=log)
+        except BaseException:
+            if fresh and ctx.is_main and not (out / "generator.pt").exists():
+                for f in ("train_config.json", "history.csv"):
+                    (out / f).unlink(missing_ok=True)
+            raise
+
+
+def _train_locked(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *,
+                  progress: bool, log: Callable[[str], None] | None) -> dict[str, Any]:
+    """:func:`_train` once the configuration is checked and ``out`` is locked."""
+    from icpbench.learning.checkpoint import load_checkpoint, save_checkpoint
+    from icpbench.learning.network import Generator, add_prior, generator_config
+
+    cfg_path = out / "train_config.json"
     if ctx.is_main:
         write_json_atomic(cfg_path, asdict(cfg))
     w = weights(cfg.weights)
@@ -308,6 +371,10 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         wall = wall_before + time.perf_counter() - t0
         sums = ddp.all_reduce_sums(sums, ctx)  # epoch statistics over every rank's steps
         n = max(sums["n"], 1)
+        bad = _nonfinite(model, sums)
+        if bad:
+            raise InputError(f"training diverged in epoch {epoch + 1} ({bad}); this epoch was not "
+                             f"saved; lower --lr (now {cfg.lr:g})")
         if not ctx.is_main:  # rank 0 writes the files; the others wait for them
             ddp.barrier(ctx)
             if ddp.broadcast(None, ctx):
@@ -322,8 +389,10 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         if ctx.enabled:
             card["distributed"] = ddp.describe(ctx, cfg.batch_size)
         save_checkpoint(model, ckpt, card)
+        tmp_state = state_path.with_name(state_path.name + ".tmp")
         torch.save({"optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                    "epoch": epoch + 1, "wall_s": wall}, state_path)
+                    "epoch": epoch + 1, "wall_s": wall}, tmp_state)
+        os.replace(tmp_state, state_path)  # atomic: a killed run leaves the old state or the new
         if log is not None:
             log(f"epoch {epoch + 1}: loss {sums['loss'] / n:.4f} err_xy "
                 f"{sums['err'] / n:.3f} m ({wall / 60:.1f} min)")
@@ -336,6 +405,16 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
         save_checkpoint(load_checkpoint(ckpt).model, ckpt, card)
     ddp.barrier(ctx)
     return ddp.broadcast(card, ctx)
+
+
+def _nonfinite(model: torch.nn.Module, sums: dict[str, float]) -> str:
+    """What is not finite after an epoch (the mean loss or some weights), or ``""``."""
+    if not math.isfinite(sums["loss"]):
+        return f"the loss is {sums['loss']}"
+    for name, p in model.state_dict().items():
+        if p.is_floating_point() and not bool(torch.isfinite(p).all()):
+            return f"weights {name} are NaN or Inf"
+    return ""
 
 
 def _prior(model: torch.nn.Module, sample: Any) -> torch.Tensor | None:
