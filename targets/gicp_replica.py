@@ -39,9 +39,9 @@ import torch
 
 from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
+from icpbench.core.registry import Range, check_ranges
 from icpbench.core.types import Registration
 from icpbench.targets.base import Target
-from icpbench.core.registry import Range, check_ranges
 from icpbench.targets.icp import ICP_RANGES, ICPConfig, config_dict, icp
 
 #: small_gicp's eigenvalues of a regularised covariance (``CovarianceSetter``).

@@ -43,10 +43,10 @@ import torch
 
 from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
+from icpbench.core.registry import check_ranges
 from icpbench.core.types import Registration
 from icpbench.targets.base import Target
 from icpbench.targets.icp import ICPConfig, config_dict, icp
-from icpbench.core.registry import check_ranges
 from icpbench.targets.kiss import KissICPTarget, VoxelNeighbours, kept_points, kiss_settings
 
 
