@@ -126,8 +126,8 @@ def _interrupted(out: Path | None, marker: str = "results.csv") -> None:
         typer.echo(f"\ninterrupted: the finished work is saved in {out}; re-run the same command "
                    "to resume where it stopped", err=True)
     else:
-        typer.echo("\ninterrupted before any result was saved; nothing was written there, re-run "
-                   "the command to start", err=True)
+        typer.echo("\ninterrupted before any result was saved; re-run the same command to resume "
+                   "(it starts from the beginning)", err=True)
     raise typer.Exit(130)
 
 
