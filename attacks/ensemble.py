@@ -50,6 +50,7 @@ from icpbench.attacks.sector import SectorAttack
 from icpbench.attacks.sector_adaptive import SectorAdaptiveAttack, score
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
@@ -86,6 +87,9 @@ class EnsembleAttack(Attack):
     )
     needs_oracle: ClassVar[bool] = True
     uses_surrogate: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "pgd_steps": Range(0, 100_000), "pgd_step_size": Range(0.0, 2.0, lo_open=True),
+        "sector_iterations": Range(0, 100_000), "queries": Range(0, 10_000_000)}
 
     def __init__(self, *, strict: bool = False, pgd_steps: int = 5, pgd_step_size: float = 0.1,
                  sector_iterations: int = 4, queries: int = 20, **params: Any) -> None:

@@ -27,6 +27,7 @@ import torch
 from icpbench.attacks.base import Attack, project_to_ball
 from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.iterated_sector import SectorIterSettings, surrogate_key
+from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 
@@ -92,6 +93,10 @@ class GeneratorAttack(Attack):
         "Learned PointNet++ generator trained through differentiable ICP (the paper's 'Ours')"
     )
     wants_context: ClassVar[bool] = True
+
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "refine_steps": Range(0, 100_000), "refine_step_size": Range(0.0, 2.0, lo_open=True),
+        "refine_icp_iterations": Range(1, 1_000_000)}
 
     def __init__(self, *, strict: bool = False, checkpoint: str | None = None,
                  dataset: str | None = None, icp_preset: str | None = None,

@@ -26,6 +26,7 @@ from icpbench.core.errors import InputError
 from icpbench.core.iterated_sector import SectorIterSettings, iterated_sector
 from icpbench.core.pose_loss import weighted_pose_error
 from icpbench.core.pose_loss import weights as weight_vector
+from icpbench.core.registry import Range
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -61,6 +62,9 @@ class PGDAttack(Attack):
         "Per-scan projected gradient ascent through the differentiable surrogate (oracle)"
     )
     needs_surrogate: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "steps": Range(1, 100_000), "step_size": Range(0.0, 2.0, lo_open=True),
+        "icp_iterations": Range(1, 1_000_000), "icp_nn_reuse": Range(0.0)}
 
     def __init__(self, *, strict: bool = False, steps: int = 30, step_size: float = 0.1,
                  weights: str | list[float] = "xy", icp_iterations: int = 25,

@@ -41,6 +41,7 @@ from icpbench.attacks.sector_adaptive import score
 from icpbench.core import sector_math
 from icpbench.core.cost_sensitivity import cost_of
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
@@ -66,6 +67,9 @@ class QuerySearchAttack(Attack):
         "queries only, any target (beyond the paper)"
     )
     needs_oracle: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "queries": Range(1, 10_000_000), "wedges": Range(1, 100_000),
+        "p_init": Range(0.0, 1.0, lo_open=True)}
 
     def __init__(self, *, strict: bool = False, queries: int = 100, wedges: int = 16,
                  p_init: float = 0.5, **params: Any) -> None:

@@ -33,6 +33,7 @@ import torch
 from icpbench.attacks.base import Attack
 from icpbench.core import sector_math as sector
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 from icpbench.targets.icp import icp_config
@@ -64,6 +65,9 @@ class SectorAttack(Attack):
         "every point moved by lambda along its map normal"
     )
     needs_surrogate: ClassVar[bool] = False
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "d_max": Range(0.0, lo_open=True), "direction": Range(-1, 1),
+        "alert_m": Range(0.0, lo_open=True)}
 
     def __init__(self, *, icp_preset: str = "lidar", d_max: float | None = None, axes: str = "xy",
                  direction: int = 1, frame: str = "map", alert_m: float = 0.5,

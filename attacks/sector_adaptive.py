@@ -33,6 +33,7 @@ import torch
 from icpbench.attacks.base import Attack
 from icpbench.core import cost_sensitivity as cs
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -62,6 +63,9 @@ class SectorAdaptiveAttack(Attack):
         "that target lands; queries only, any target (beyond the paper)"
     )
     needs_oracle: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "iterations": Range(0, 100_000), "step_size": Range(0.0, 2.0, lo_open=True),
+        "d_max": Range(0.0, lo_open=True)}
 
     def __init__(self, *, strict: bool = False, iterations: int = 4, step_size: float = 0.5,
                  d_max: float | None = None, **params: Any) -> None:

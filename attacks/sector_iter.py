@@ -25,6 +25,7 @@ import torch
 from icpbench.attacks.base import Attack
 from icpbench.core.errors import InputError
 from icpbench.core.iterated_sector import SectorIterSettings, is_memoised, iterated_sector
+from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 
@@ -39,6 +40,10 @@ class SectorIterAttack(Attack):
         "(beyond the paper)"
     )
     needs_surrogate: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "iterations": Range(0, 100_000), "step_size": Range(0.0, 2.0, lo_open=True),
+        "icp_iterations": Range(1, 1_000_000), "icp_nn_reuse": Range(0.0),
+        "d_max": Range(0.0, lo_open=True)}
 
     def __init__(self, *, strict: bool = False, iterations: int = SectorIterSettings.iterations,
                  step_size: float = SectorIterSettings.step_size,

@@ -489,3 +489,23 @@ def test_checkpoint_messages_name_the_device_and_the_refused_pickle(tmp_path):
         load_checkpoint(evil)
     msg = str(info.value)
     assert "it may be a pickle that carries code" in msg and "weights_only=False" not in msg
+
+
+def test_every_attack_declares_a_range_for_each_numeric_setting():
+    """As for the targets: an out-of-range attack number is refused up front, naming it."""
+    import typing
+
+    from icpbench.core import registry
+
+    for name in registry.attacks.names():
+        ok, _ = registry.attacks.available(name)
+        if not ok:
+            continue
+        cls = registry.attacks.get(name)
+        ranges = getattr(cls, "param_ranges", {}) or {}
+        for key, hint in cls.param_types().items():
+            args = set(typing.get_args(hint)) | {hint}
+            if args & {int, float}:
+                assert key in ranges, (name, key)
+    with pytest.raises(InputError, match="queries"):
+        registry.attacks.check_params("search", {"queries": 0})
