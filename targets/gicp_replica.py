@@ -60,6 +60,15 @@ class CovarianceMap(MapIndex):
             raise InputError(f"covariances must have shape ({len(self)}, 3, 3), got {cov.shape}")
         self.covariances = cov
 
+    def nearest2(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`MapIndex.nearest2`, with a tie (a duplicated map point: ``d2 == d1``) given a
+        1e-12 m gap, so the correspondence cache asks such a query again once it moves (with no
+        gap at all it would keep the row)."""
+        d1, d2, idx = super().nearest2(q)
+        tie = np.isfinite(d1) & (d2 <= d1)
+        d2[tie] = d1[tie] + 1e-12
+        return d1, d2, idx
+
     def table(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         if dtype not in self._table:
             six = self.covariances[:, _ROWS, _COLS]
