@@ -116,6 +116,16 @@ def test_kernel_gradients_match_finite_differences(cls, kernel, backprop):
         assert bool(reg.converged.all())
 
 
+def test_kernel_none_is_no_kernel(scene):
+    """``kernel="none"`` (what a command line can pass) registers exactly as ``cauchy_c=None``."""
+    batch = Batch.from_samples(scene[:1])
+    for cls in (PointToPlaneICP, PointToPointICP):
+        a = cls("lidar", kernel="none").register(batch.scans, batch.maps, batch.T_init)
+        b = cls("lidar", cauchy_c=None).register(batch.scans, batch.maps, batch.T_init)
+        c = cls("lidar").register(batch.scans, batch.maps, batch.T_init)
+        assert torch.equal(a.T, b.T) and not torch.equal(a.T, c.T)
+
+
 def test_kernel_changes_the_pose_and_keeps_accuracy(scene):
     """Huber and Cauchy at the same scale: different poses (the kernel is used), both cm-level."""
     batch = Batch.from_samples(scene)
