@@ -158,6 +158,14 @@ class KissICPReplica(Target):
         out._maps = self._maps
         return out
 
+    def __getstate__(self) -> dict[str, Any]:
+        # the per-map cache holds weak references (not picklable): a copy starts empty
+        return {**self.__dict__, "_maps": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._maps = weakref.WeakKeyDictionary()
+
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray | None = None) -> MapIndex:
         return MapIndex(map_points, map_normals, workers=self.config.kdtree_workers)
 

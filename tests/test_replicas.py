@@ -154,6 +154,18 @@ def test_replica_of_every_target():
     assert build_target("small-gicp", "lidar", {"registration_type": "PLANE_ICP"}).replica() is None
 
 
+def test_replicas_pickle_without_their_map_cache(scene):
+    import pickle
+
+    batch = Batch.from_samples(scene[:1])
+    for name in ("kiss-icp-replica", "small-gicp-replica"):
+        tgt = build_target(name, "lidar", {"max_iterations": 3})
+        first = tgt.register(batch.scans, batch.maps, batch.T_init)
+        copy = pickle.loads(pickle.dumps(tgt))
+        assert len(copy._maps) == 0 and copy.settings() == tgt.settings()
+        assert torch.equal(copy.register(batch.scans, batch.maps, batch.T_init).T, first.T)
+
+
 def test_kiss_search_and_one_step_equal_kiss_itself(scene):
     """One KISS iteration (the library) equals one replica iteration and one NumPy step on KISS's
     27-voxel neighbours (:class:`VoxelNeighbours`), to rounding."""
