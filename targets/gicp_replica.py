@@ -61,6 +61,15 @@ class CovarianceMap(MapIndex):
             raise InputError(f"covariances must have shape ({len(self)}, 3, 3), got {cov.shape}")
         self.covariances = cov
 
+    def nearest2(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`MapIndex.nearest2`, with a tie (a duplicated map point: ``d2 == d1``) given a
+        1e-12 m gap, so the correspondence cache asks such a query again once it moves (with no
+        gap at all it would keep the row)."""
+        d1, d2, idx = super().nearest2(q)
+        tie = np.isfinite(d1) & (d2 <= d1)
+        d2[tie] = d1[tie] + 1e-12
+        return d1, d2, idx
+
     def table(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         if dtype not in self._table:
             six = self.covariances[:, _ROWS, _COLS]
@@ -157,6 +166,14 @@ class SmallGICPReplica(Target):
                                scan_cov_grad=self.scan_cov_grad, threads=self.threads)
         out._maps = self._maps
         return out
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the per-map cache holds weak references (not picklable): a copy starts empty
+        return {**self.__dict__, "_maps": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._maps = weakref.WeakKeyDictionary()
 
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray | None = None) -> MapIndex:
         return MapIndex(map_points, map_normals, workers=self.config.kdtree_workers)

@@ -39,9 +39,9 @@ from icpbench.targets import forward_cache
 
 Mode = Literal["plane", "point", "gicp"]
 Backprop = Literal["unrolled", "implicit"]
-Kernel = Literal["cauchy", "huber", "geman_mcclure"]
+Kernel = Literal["cauchy", "huber", "geman_mcclure", "none"]
 #: The robust kernels of :class:`ICPConfig` (``kernel``).
-KERNELS: tuple[str, ...] = ("cauchy", "huber", "geman_mcclure")
+KERNELS: tuple[str, ...] = ("cauchy", "huber", "geman_mcclure", "none")
 
 
 #: Valid values of the numeric :class:`ICPConfig` fields (None, where allowed, disables a feature).
@@ -91,7 +91,8 @@ class ICPConfig:
             point-to-point distance) with scale ``c = cauchy_c``: ``"cauchy"`` (default, dICP's)
             ``1 / (1 + r^2 / c^2)``; ``"huber"`` ``min(1, c / |r|)`` (the IRLS weight of Huber's
             loss); ``"geman_mcclure"`` ``1 / (1 + r^2 / c^2)^2``, KISS-ICP's weight
-            ``kappa^2 / (kappa + r^2)^2`` with ``kappa = c^2`` (Vizzo et al., RA-L 2023, eq. 11).
+            ``kappa^2 / (kappa + r^2)^2`` with ``kappa = c^2`` (Vizzo et al., RA-L 2023, eq. 11);
+            ``"none"``: weights 1, as ``cauchy_c=None`` (a name a command line can pass).
             Weights are differentiated (unrolled and implicit gradients alike).
     """
 
@@ -167,7 +168,7 @@ def _gate(d: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:
 
 def _robust(r2: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:
     """Robust weight (differentiable) of squared residuals r2 (B, N) (``ICPConfig.kernel``)."""
-    if cfg.cauchy_c is None:
+    if cfg.cauchy_c is None or cfg.kernel == "none":
         return torch.ones_like(r2)
     return kernel_weight(r2, cfg.kernel, cfg.cauchy_c**2)[0]
 
@@ -179,7 +180,7 @@ def kernel_weight(r2: torch.Tensor, kernel: str, c2: float) -> tuple[torch.Tenso
     The weight is built from differentiable operations, so autograd of ``w`` is the slope too; the
     slope is returned for hand-written backward passes. Huber's weight is 1 for ``r^2 <= c^2`` and
     ``c / |r|`` beyond (continuous, its slope jumps at ``|r| = c``)."""
-    if not np.isfinite(c2):
+    if not np.isfinite(c2) or kernel == "none":
         return torch.ones_like(r2), torch.zeros_like(r2)
     if kernel == "cauchy":
         w = 1.0 / (1.0 + r2 / c2)
@@ -521,7 +522,7 @@ def _linearise(p: torch.Tensor, R: torch.Tensor, t: torch.Tensor, nn: _Correspon
     if mode == "plane" and not cfg.soft_dmax:
         # hard gate: the correspondence exists and is closer than d_max (= the query bound)
         mask = valid & (d2 < query_bound**2) if np.isfinite(query_bound) else valid
-        c2 = np.inf if cfg.cauchy_c is None else cfg.cauchy_c**2
+        c2 = np.inf if cfg.cauchy_c is None or cfg.kernel == "none" else cfg.cauchy_c**2
         return _PlaneNormalEquations.apply(q, m, n, mask, c2, cfg.kernel)
     ok = valid & (d2 < query_bound**2)
     if mode in ("point", "gicp"):

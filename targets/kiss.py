@@ -150,7 +150,7 @@ class VoxelNeighbours:
 
     _SHIFTS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)],
                        dtype=np.int64)
-    _CHUNK = 2048  # queries per block (27 x cap candidates each)
+    _CHUNK = 4096  # queries per block
     _RANGE = 1 << 20  # voxel coordinates are encoded within +-2^20
 
     def __init__(self, points: np.ndarray, voxel_size: float) -> None:
@@ -161,12 +161,10 @@ class VoxelNeighbours:
             raise InputError(f"map points must lie within {self._RANGE} voxels of the origin")
         codes = self._codes(vox.astype(np.int64))
         order = np.argsort(codes, kind="stable")
-        self.keys, start, count = np.unique(codes[order], return_index=True, return_counts=True)
-        cap = int(count.max()) if count.size else 1
-        slots = np.full((self.keys.size, cap), -1, dtype=np.int64)  # point rows per voxel
-        rank = np.arange(order.size) - np.repeat(start, count)
-        slots[np.repeat(np.arange(self.keys.size), count), rank] = order
-        self.slots = slots
+        # voxel keys (sorted) and, per voxel, its run start and length in ``order``
+        self.keys, self.start, self.count = np.unique(codes[order], return_index=True,
+                                                      return_counts=True)
+        self.order = order
 
     @staticmethod
     def _codes(v: np.ndarray) -> np.ndarray:
@@ -178,27 +176,44 @@ class VoxelNeighbours:
         """Distance (Q,) and row (Q,) of KISS's neighbour of each query (Q, 3); ``inf`` and K
         where none of the 27 voxels holds a point (or the query is not finite, or farther than
         2^20 voxels from the origin, where no map point is)."""
+        d1, _, idx = self.query2(q)
+        return d1, idx
+
+    def query2(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """As :meth:`query`, with the distance of the second-nearest point of the 27 voxels
+        (``inf`` if there is none): (d1 (Q,), d2 (Q,), idx (Q,))."""
         q = np.asarray(q, dtype=np.float64)
         Q, K = q.shape[0], self.points.shape[0]
-        dist, idx = np.full(Q, np.inf), np.full(Q, K, dtype=np.int64)
+        dist, dist2 = np.full(Q, np.inf), np.full(Q, np.inf)
+        idx = np.full(Q, K, dtype=np.int64)
         with np.errstate(invalid="ignore", over="ignore"):  # far queries find nothing anyway
             ok = np.flatnonzero((np.abs(q) < (self._RANGE - 2) * self.voxel_size).all(axis=1))
-        pts = np.vstack([self.points, np.full((1, 3), np.inf)])
         for lo in range(0, ok.size, self._CHUNK):
             sel = ok[lo:lo + self._CHUNK]
             vox = np.floor(q[sel] / self.voxel_size).astype(np.int64)
             codes = self._codes((vox[:, None, :] + self._SHIFTS[None]).reshape(-1, 3))
             pos = np.minimum(np.searchsorted(self.keys, codes), self.keys.size - 1)
             hit = self.keys[pos] == codes
-            cand = np.where(hit[:, None], self.slots[pos], -1).reshape(sel.size, -1)
-            cand = np.where(cand < 0, K, cand)
-            d2 = ((pts[cand] - q[sel][:, None, :]) ** 2).sum(-1)
-            j = np.argmin(d2, axis=1)
-            best = d2[np.arange(sel.size), j]
-            found = np.isfinite(best)
-            dist[sel[found]] = np.sqrt(best[found])
-            idx[sel[found]] = cand[np.arange(sel.size), j][found]
-        return dist, idx
+            # the stored points of every (query, occupied voxel), flat, grouped by query
+            hq = np.repeat(np.arange(sel.size), 27)[hit]
+            cnt = self.count[pos[hit]]
+            if cnt.size == 0:
+                continue
+            first = np.repeat(self.start[pos[hit]] - (np.cumsum(cnt) - cnt), cnt)
+            rows = self.order[first + np.arange(int(cnt.sum()))]
+            qi = np.repeat(hq, cnt)
+            d2 = ((self.points[rows] - q[sel][qi]) ** 2).sum(1)
+            seg = np.flatnonzero(np.r_[True, qi[1:] != qi[:-1]])  # first candidate of each query
+            who = qi[seg]
+            best = np.minimum.reduceat(d2, seg)
+            n_seg = np.diff(np.r_[seg, qi.size])
+            at = np.flatnonzero(d2 == np.repeat(best, n_seg))
+            _, one = np.unique(qi[at], return_index=True)  # the first minimum of each query
+            idx[sel[who]] = rows[at[one]]
+            dist[sel[who]] = np.sqrt(best)
+            d2[at[one]] = np.inf
+            dist2[sel[who]] = np.sqrt(np.minimum.reduceat(d2, seg))
+        return dist, dist2, idx
 
 
 @dataclass(frozen=True)

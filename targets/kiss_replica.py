@@ -58,7 +58,8 @@ class KissReplicaMap(MapIndex):
     only steer how far a point may move before it is asked again.
     """
 
-    _TINY_GAP = 1e-12  # metres
+    _REACH = 2.0 * np.sqrt(3.0)  # farthest point of the 27 voxels, in voxels
+    _TINY_GAP = 1e-12  # metres: a gap below the cache's 1e-9 m margin, i.e. ask again
 
     def __init__(self, points: np.ndarray, voxel_size: float, max_corr: float) -> None:
         super().__init__(points)
@@ -67,24 +68,46 @@ class KissReplicaMap(MapIndex):
         self.max_corr = float(max_corr)
 
     def nearest2(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """KISS's neighbour row of each query (K, 3), with distances (d1, d2) that give the cache's
-        slack ``(d2 - d1) / 2`` a meaning for KISS's search:
+        """KISS's neighbour row of each query (K, 3), with distances (d1, d2) whose half gap
+        ``(d2 - d1) / 2`` is how far the query may move with the same answer from KISS (the
+        correspondence cache's slack):
 
-        * exact neighbour within a voxel: ``d2`` is shrunk to ``2 voxel - d1`` so the point is asked
-          again before its neighbour can leave the 27 voxels;
-        * exact neighbour beyond ``max_corr``: KISS's is farther still, so the pair is gated out
+        * exact neighbour within a voxel: KISS's too, while it stays within a voxel and the
+          nearest: ``d2`` is shrunk to ``2 voxel - d1``;
+        * exact neighbour beyond ``max_corr``: KISS's is farther still, so the pair is gated out,
           and the cache's far rule (move ``d1 - max_corr`` first) holds;
-        * in between: KISS's own search, ``d2 = d1 + 1e-12`` (asked again whenever it moves).
+        * in between: if the exact neighbour lies in the 27 voxels it is KISS's (the nearest of
+          all, so of those), else KISS's own search over the 27 voxels; the answer holds while
+          the query stays in its voxel (the same 27 voxels) and keeps its nearest among the
+          candidates: ``d2 = d1 + 2 min(boundary distance, gap / 2)`` (gap: second minus first
+          distance, exact or among the 27 voxels), with d1 the exact distance (not above
+          ``max_corr``, so the far rule stays off).
         """
+        q = np.asarray(q, dtype=np.float64)
         d1, d2, idx = super().nearest2(q)
         near = d1 < self.voxel_size
         d2 = np.where(near, np.minimum(d2, 2.0 * self.voxel_size - d1), d2)
         mid = ~near & (d1 <= self.max_corr) & np.isfinite(d1)
         if mid.any():
-            _, idx[mid] = self.search.query(np.asarray(q, dtype=np.float64)[mid])
-            # a gap far below the cache's 1e-9 m margin: a negative slack, asked again as soon as
-            # it moves (d2 = d1 would mean "no gap", which the cache never asks again)
-            d2[mid] = d1[mid] + self._TINY_GAP
+            m = np.flatnonzero(mid)
+            qm = q[m]
+            vq = np.floor(qm / self.voxel_size)
+            frac = qm / self.voxel_size - vq
+            wall = self.voxel_size * np.minimum(frac, 1.0 - frac).min(axis=1)
+            gap = 0.5 * (d2[m] - d1[m])
+            # the exact neighbour lies in the 27 voxels: it is KISS's (nearest overall, so nearest
+            # of them), while the query keeps its voxel and that neighbour
+            inside = (np.abs(np.floor(self.points[idx[m]] / self.voxel_size) - vq) <= 1).all(axis=1)
+            # every point of the 27 voxels is within 2 sqrt(3) voxels: beyond, they hold none
+            empty = ~inside & (d1[m] > self._REACH * self.voxel_size)
+            idx[m[empty]] = len(self)
+            gap[empty] = np.inf
+            search = ~inside & ~empty
+            if search.any():  # otherwise KISS's search, and its own gap
+                k1, k2, idx[m[search]] = self.search.query2(q[m[search]])
+                with np.errstate(invalid="ignore"):  # nothing found (inf - inf): only the voxel
+                    gap[search] = np.where(np.isfinite(k1), 0.5 * (k2 - k1), np.inf)
+            d2[m] = d1[m] + 2.0 * np.maximum(np.minimum(wall, gap), self._TINY_GAP)
         far = ~near & ~mid & np.isfinite(d1)
         d2[far] = d1[far] + self._TINY_GAP  # the cache's far rule gives the slack
         return d1, d2, idx
@@ -139,6 +162,14 @@ class KissICPReplica(Target):
         out.config = self.config.with_(**changes)
         out._maps = self._maps
         return out
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the per-map cache holds weak references (not picklable): a copy starts empty
+        return {**self.__dict__, "_maps": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._maps = weakref.WeakKeyDictionary()
 
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray | None = None) -> MapIndex:
         return MapIndex(map_points, map_normals, workers=self.config.kdtree_workers)

@@ -116,6 +116,16 @@ def test_kernel_gradients_match_finite_differences(cls, kernel, backprop):
         assert bool(reg.converged.all())
 
 
+def test_kernel_none_is_no_kernel(scene):
+    """``kernel="none"`` (what a command line can pass) registers exactly as ``cauchy_c=None``."""
+    batch = Batch.from_samples(scene[:1])
+    for cls in (PointToPlaneICP, PointToPointICP):
+        a = cls("lidar", kernel="none").register(batch.scans, batch.maps, batch.T_init)
+        b = cls("lidar", cauchy_c=None).register(batch.scans, batch.maps, batch.T_init)
+        c = cls("lidar").register(batch.scans, batch.maps, batch.T_init)
+        assert torch.equal(a.T, b.T) and not torch.equal(a.T, c.T)
+
+
 def test_kernel_changes_the_pose_and_keeps_accuracy(scene):
     """Huber and Cauchy at the same scale: different poses (the kernel is used), both cm-level."""
     batch = Batch.from_samples(scene)
@@ -142,6 +152,18 @@ def test_replica_of_every_target():
     assert build_target("small-gicp", "lidar").replica().name == "small-gicp-replica"
     assert build_target("small-gicp", "lidar", {"registration_type": "ICP"}).replica().name == "p2point"
     assert build_target("small-gicp", "lidar", {"registration_type": "PLANE_ICP"}).replica() is None
+
+
+def test_replicas_pickle_without_their_map_cache(scene):
+    import pickle
+
+    batch = Batch.from_samples(scene[:1])
+    for name in ("kiss-icp-replica", "small-gicp-replica"):
+        tgt = build_target(name, "lidar", {"max_iterations": 3})
+        first = tgt.register(batch.scans, batch.maps, batch.T_init)
+        copy = pickle.loads(pickle.dumps(tgt))
+        assert len(copy._maps) == 0 and copy.settings() == tgt.settings()
+        assert torch.equal(copy.register(batch.scans, batch.maps, batch.T_init).T, first.T)
 
 
 def test_kiss_search_and_one_step_equal_kiss_itself(scene):
