@@ -70,7 +70,7 @@ def plot_validation_route(places: pd.DataFrame, quantities: dict[str, int], seve
         ring(ax)
         ax.set_title(q + ("" if quantities[q] > 0 else " (negated)"), fontsize=9)
     for k in range(n, rows * cols):
-        axes[k // cols, k % cols].axis("off")
+        fig.delaxes(axes[k // cols, k % cols])
     if title:
         fig.suptitle(f"{title}: black rings = places that fail under realistic corruption")
     return save(fig, path, dpi=100)
