@@ -219,6 +219,13 @@ def run(
         "--strict-files/--no-strict-files",
         help="Stop at a sample whose input file is bad instead of skipping it with a warning. "
              "[default: no]")] = None,
+    corruptions: Annotated[str | None, typer.Option(
+        help="Also run these corruptions ('all' or comma-separated names, see `icpbench list`), "
+             "each at every --severities level; their rows hold the severity in the budget column "
+             "and get their own table. [default: none]")] = None,
+    severities: Annotated[str | None, typer.Option(
+        help="Corruption severity levels, comma-separated integers 1..5. [default: 1,2,3,4,5]")]
+    = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Run the grid samples x attacks x targets x budgets x seeds and print Table 1.
@@ -228,6 +235,7 @@ def run(
     """
     out_dir: Path | None = None
     try:
+        from icpbench.harness.corruption_report import corruption_section, split_rows
         from icpbench.harness.report import render, table1, transfer_frame
         from icpbench.harness.results import attacks_not_run, load_results
         from icpbench.harness.runner import RunConfig
@@ -240,7 +248,10 @@ def run(
             "budgets": None if budgets is None else _floats(budgets, "--budgets"),
             "samples": samples, "seeds": None if seed is None else _ints(seed, "--seed"),
             "surrogate": surrogate, "split": split, "strict": strict, "batch_size": batch_size,
-            "threads": threads, "executor": executor, "strict_files": strict_files}
+            "threads": threads, "executor": executor, "strict_files": strict_files,
+            "corruptions": None if corruptions is None else [c.strip() for c in corruptions.split(",")
+                                                             if c.strip()],
+            "severities": None if severities is None else _ints(severities, "--severities")}
         if budgets is not None and not given["budgets"]:
             raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
         if seed is not None and not given["seeds"]:
@@ -263,11 +274,14 @@ def run(
         cfg = base.validate()
         _check_reference(reference, cfg.attacks)
         run_grid(cfg, out_dir, progress=not quiet)
-        df = load_results(out_dir)
+        df, corrupted = split_rows(load_results(out_dir))
         for t in cfg.targets:
-            typer.echo(f"\nTable 1 ({cfg.dataset}, target {t}):\n")
-            typer.echo(table1(df, "md", reference=reference, target=t, dataset=cfg.dataset))
-        if len(cfg.targets) > 1:
+            if not df.empty:
+                typer.echo(f"\nTable 1 ({cfg.dataset}, target {t}):\n")
+                typer.echo(table1(df, "md", reference=reference, target=t, dataset=cfg.dataset))
+            if not corrupted.empty:
+                typer.echo(f"\n{corruption_section(corrupted, 'md', t)}")
+        if len(cfg.targets) > 1 and not df.empty:
             for b in cfg.budgets:
                 typer.echo(f"\nAttacks x targets (λ={b:g}, each target attacked through itself or "
                            f"its replica):\n" if cfg.surrogate == "self" else
@@ -299,6 +313,7 @@ def table(
     = None,
 ) -> None:
     """Regenerate Table 1 (or the transfer table) from stored results."""
+    from icpbench.harness.corruption_report import corruption_frame, corruption_section, split_rows
     from icpbench.harness.report import (
         check_table_destination,
         render,
@@ -306,7 +321,6 @@ def table(
         table1,
         transfer_frame,
         transfer_vs_baseline,
-        write_table,
     )
     from icpbench.harness.results import load_results
 
@@ -315,7 +329,12 @@ def table(
             raise typer.BadParameter(f"--format must be md, latex or csv, got {format!r}")
         if out is not None:
             check_table_destination(out)
-        df = load_results(results_dir)
+        df, corrupted = split_rows(load_results(results_dir))
+        if df.empty:  # corruptions only: their table (CSV: the same cells)
+            text = corruption_section(corrupted, format, target) if format != "csv" else \
+                render(corruption_frame(corrupted, target), "csv")
+            _write_or_echo(text, out)
+            return
         _check_reference(reference, set(df["attack"]))
         if transfer is not None:
             text = render(transfer_frame(df, transfer), format)
@@ -327,10 +346,9 @@ def table(
         else:
             text = table1(df, format, reference=reference, target=target,
                           dataset=run_dataset(results_dir))
-        if out is None:
-            typer.echo(text)
-        else:
-            write_table(out, text)
+            if format != "csv" and not corrupted.empty:  # CSV stays one table
+                text += "\n" + corruption_section(corrupted, format, target)
+        _write_or_echo(text, out)
     except Exception as exc:
         _user_error(exc)
 
@@ -393,6 +411,16 @@ def leaderboard(
         _interrupted(out_dir)
     except Exception as exc:
         _user_error(exc)
+
+
+def _write_or_echo(text: str, out: str | None) -> None:
+    """Print a table, or write it to ``out`` (never over a file it did not write)."""
+    from icpbench.harness.report import write_table
+
+    if out is None:
+        typer.echo(text)
+    else:
+        write_table(out, text)
 
 
 @app.command("show-dataset")
@@ -463,6 +491,73 @@ def danger_map(
         typer.echo(f"written to {out}: " + ", ".join(summary["files"]))
     except KeyboardInterrupt:
         _interrupted(None if out_dir is None else out_dir / "run")
+    except Exception as exc:
+        _user_error(exc)
+
+
+@app.command("validate-map")
+def validate_map(
+    dataset: Annotated[str, typer.Option(help="A route dataset (lidar-sim, kitti, boreas).")]
+    = "lidar-sim",
+    split: Annotated[str, typer.Option(help="Dataset split.")] = "test",
+    samples: Annotated[int | None, typer.Option(
+        help="Places: the first K scans of the split (a resumed run may grow it); 0 = all.")] = 96,
+    attacks: Annotated[str, typer.Option(
+        help="Comma-separated attacks whose error at --budget is the worst case.")]
+    = "generator,sector-iter",
+    budget: Annotated[float, typer.Option(help="Budget λ of the attacks and the sector estimate "
+                                                "(metres).")] = 1.0,
+    corruptions: Annotated[str, typer.Option(help="'all' or comma-separated corruptions.")]
+    = "all",
+    severities: Annotated[str, typer.Option(help="Corruption levels, comma-separated 1..5.")]
+    = "1,2,3,4,5",
+    fail_m: Annotated[float, typer.Option(
+        help="A place fails when its largest error over corruptions at a severity exceeds this "
+             "(metres).")] = 0.5,
+    headline_severity: Annotated[int, typer.Option(
+        help="Severity whose failures the route figure rings.")] = 3,
+    bootstrap: Annotated[int, typer.Option(help="Bootstrap resamples of the intervals.")] = 1000,
+    route: Annotated[str, typer.Option(help="A name for the route in the summary and figure.")]
+    = "",
+    attack_param: Annotated[list[str] | None, typer.Option(help="NAME.KEY=VALUE.")] = None,
+    dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
+    executor: Annotated[str, typer.Option(help="local or ray; results do not depend on it.")]
+    = "local",
+    out: Annotated[str, typer.Option(help="Output folder (re-run to resume).")]
+    = "runs/danger-validation",
+    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
+) -> None:
+    """Do danger maps predict real trouble? Worst cases and cheap predictors against the errors of
+    realistic corruptions, place by place: Spearman and ROC AUC with bootstrap intervals, a route
+    figure, summary.json/md and a manifest in --out (the error rows in --out/run, resumable)."""
+    import sys
+
+    from icpbench.analysis.danger_validation import ValidationSettings, validate
+
+    out_dir: Path | None = None
+    try:
+        out_dir = _out_dir(out)
+        settings = ValidationSettings(
+            dataset=dataset, split=split, samples=None if samples == 0 else samples,
+            dataset_params=_flat(dataset_param, "--dataset-param"),
+            attacks=[a.strip() for a in attacks.split(",") if a.strip()], budget_m=budget,
+            corruptions=[c.strip() for c in corruptions.split(",") if c.strip()],
+            severities=_ints(severities, "--severities"), fail_m=fail_m,
+            headline_severity=headline_severity, n_boot=bootstrap, executor=executor,
+            attack_params=_nested(attack_param, "--attack-param"))
+        command = "icpbench " + " ".join(sys.argv[1:]) if sys.argv[1:] else "icpbench validate-map"
+        summary = validate(settings, out_dir, route=route, command=command, progress=not quiet)
+        block = summary["by_severity"][str(headline_severity)]
+        typer.echo(f"{summary['route']}: {summary['places']} places, {block['failures']} fail at "
+                   f"severity {headline_severity} (> {fail_m:g} m)")
+        for q, v in block["quantities"].items():
+            sp, auc = v["spearman"], v["auc"]
+            typer.echo(f"  {q:<22} Spearman {sp['value']:+.2f} [{sp['ci95'][0]:+.2f}, "
+                       f"{sp['ci95'][1]:+.2f}]  AUC {auc['value']:.2f} [{auc['ci95'][0]:.2f}, "
+                       f"{auc['ci95'][1]:.2f}]")
+        typer.echo(f"written to {out_dir}: " + ", ".join(summary["files"]))
+    except KeyboardInterrupt:
+        _interrupted(out_dir)
     except Exception as exc:
         _user_error(exc)
 

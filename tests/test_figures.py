@@ -94,3 +94,20 @@ def test_dataset_pictures_label_their_axes(saved, tmp_path):
     paths = show_dataset(_Route(), tmp_path)
     assert [p.exists() for p in paths] == [True, True]
     assert saved == [[], []]
+
+
+def test_validation_route_figure_labels_every_panel(saved, tmp_path):
+    from icpbench.analysis.danger_validation import quantity_columns
+    from icpbench.analysis.validation_figure import danger_percentile, plot_validation_route
+
+    rng = np.random.default_rng(0)
+    quantities = quantity_columns(["generator"])
+    places = pd.DataFrame({"x": rng.uniform(0, 500, 30), "y": rng.uniform(0, 500, 30),
+                           "realistic_s3": rng.uniform(0, 2, 30),
+                           **{q: rng.uniform(1, 9, 30) for q in quantities}})
+    plot_validation_route(places, quantities, 3, 0.5, tmp_path / "route.png", title="t")
+    assert (tmp_path / "route.png").stat().st_size > 0
+    assert saved == [[]]
+    # danger percentiles: negated quantities rank their smallest value most dangerous
+    assert list(danger_percentile(np.array([1.0, 3.0, 2.0]), -1)) == pytest.approx([1, 1 / 3, 2 / 3])
+    assert danger_percentile(np.array([1.0, np.inf]), 1)[1] == 1.0

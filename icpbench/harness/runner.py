@@ -37,7 +37,9 @@ from icpbench.core import registry
 from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.se3 import POSE_ERROR_COLUMNS, pose_error_components
 from icpbench.core.types import Batch, Sample
+from icpbench.corruptions.base import SEVERITIES
 from icpbench.datasets.base import Dataset
+from icpbench.harness.corruption_units import build_corruption_attacks, check_corruptions, grid_units
 from icpbench.harness.executors import WorkItem, check_executor, get_executor
 from icpbench.harness.progress import RunProgress
 from icpbench.harness.results import (
@@ -89,6 +91,9 @@ class RunConfig:
             a run may be resumed with another executor.
         strict_files: stop the run at the first sample whose input file is bad, instead of
             skipping it with a warning and ``error`` rows.
+        corruptions: realistic corruptions run beside the attacks (``["all"]`` = every one that
+            loads; default none), each at every level of ``severities`` (1..5), the severity in the
+            budget column (:mod:`icpbench.harness.corruption_units`).
 
     :meth:`validate` resolves ``all`` and the default budgets and checks every setting, so the
     manifest records exactly what ran; :meth:`from_file` reads such a record back.
@@ -112,6 +117,8 @@ class RunConfig:
     target_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     executor: str = "local"
     strict_files: bool = False
+    corruptions: list[str] = field(default_factory=list)
+    severities: list[int] = field(default_factory=lambda: list(SEVERITIES))
 
     def validate(self) -> RunConfig:
         """Check names, budgets, sizes and every plugin setting; resolve ``all`` and the default
@@ -148,6 +155,7 @@ class RunConfig:
             raise InputError(f"dataset_seed must be an integer from 0 to {SEED_MAX}, got "
                              f"{self.dataset_seed!r}")
         self._check_params()
+        check_corruptions(self)
         check_executor(self.executor)
         return self
 
@@ -341,6 +349,7 @@ class GridWorker:
         self.attacks = {n: build_attack(n, cfg.strict, {**_attack_context(n, cfg, self.dataset),
                                                         **cfg.attack_params.get(n, {})})
                         for n in cfg.attacks}
+        self.attacks.update(build_corruption_attacks(cfg))
         self.prepared: dict[str, dict[str, Any]] = {t: {} for t in self.targets}
 
     def factory(self) -> Callable[[], GridWorker]:
@@ -471,12 +480,13 @@ def _run_items(cfg: RunConfig, worker: GridWorker, store: ResultsStore, manifest
     if n == 0:
         raise InputError(f"dataset {cfg.dataset!r} split {cfg.split!r} has no samples")
     starts = list(range(0, n, cfg.batch_size))
-    total = len(cfg.seeds) * len(starts) * len(cfg.budgets) * len(cfg.attacks)
+    grid = grid_units(cfg, list(worker.attacks))
+    total = len(cfg.seeds) * len(starts) * len(grid)
     items: list[WorkItem] = []
     for seed in cfg.seeds:
         for start in starts:
             ids = [sample_id(dataset, i) for i in range(start, min(start + cfg.batch_size, n))]
-            units = tuple((budget, aname) for budget in cfg.budgets for aname in worker.attacks
+            units = tuple((budget, aname) for budget, aname in grid
                           if not all(store.has((sid, aname, t, float(budget), int(seed)))
                                      for sid in ids for t in worker.targets))
             if units:
