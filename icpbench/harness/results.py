@@ -199,7 +199,8 @@ def attacks_not_run(df: pd.DataFrame) -> dict[str, str]:
     (:data:`NOT_RUN`), with the first such message."""
     out = {}
     for attack, g in df.groupby("attack"):
-        errs = g["error"].fillna("").astype(str) if "error" in g else pd.Series([""] * len(g))
+        errs = (g["error"].astype(object).where(g["error"].notna(), "").astype(str)
+                if "error" in g else pd.Series([""] * len(g)))
         if len(g) and errs.str.startswith(NOT_RUN).all():
             out[str(attack)] = errs.iloc[0][len(NOT_RUN):]
     return out
