@@ -21,6 +21,7 @@ from icpbench.core.types import Batch, Sample, validate_cloud
 from icpbench.harness.runner import build_attack, build_target
 from icpbench.learning.checkpoint import save_checkpoint
 from icpbench.learning.network import Generator, generator_config
+from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.p2plane import PointToPlaneICP
 
 torch.set_num_threads(1)
@@ -149,7 +150,9 @@ def attacks(tmp_path_factory):
     params = {"pgd": {"steps": 2}, "sector": {"icp_preset": "objects"},
               "generator": {"checkpoint": str(ckpt)},
               "generator-refine": {"checkpoint": str(ckpt), "refine_steps": 1,
-                                   "refine_icp_iterations": 3}}
+                                   "refine_icp_iterations": 3},
+              "sector-adaptive": {"iterations": 1}, "search": {"queries": 3, "wedges": 2},
+              "ensemble": {"pgd_steps": 1, "sector_iterations": 1, "queries": 2}}
     names = [n for n in registry.attacks.names() if registry.attacks.available(n)[0]]
     assert {"none", "uniform", "normal", "sector", "pgd", "generator"} <= set(names)
     return {n: build_attack(n, True, params.get(n, {})) for n in names}
@@ -180,7 +183,9 @@ def test_strict_attacks_never_exceed_their_budget(attacks, p):
     batch = Batch.from_samples(samples)
     lam = p["budget"]
     for name, attack in attacks.items():
-        out = attack.run(batch, lam, surrogate=SURROGATE, generator=p["seed"] % 1000)
+        oracle = QueryOracle(SURROGATE, batch, batch.maps) if attack.needs_oracle else None
+        out = attack.run(batch, lam, surrogate=SURROGATE, generator=p["seed"] % 1000,
+                         oracle=oracle)
         d = torch.linalg.norm(out.scans - batch.scans, dim=-1)
         assert bool(torch.isfinite(out.scans).all()), name
         assert float(d.max()) <= lam * (1 + 1e-9) + 1e-12, (name, float(d.max()), lam)
