@@ -118,6 +118,33 @@ def test_resume_with_more_samples_adds_only_the_new_ones(tmp_path):
         run(RunConfig(samples=6, **cfg), tmp_path / "grown", progress=False)
 
 
+def test_resume_with_another_attack_adds_only_its_rows(tmp_path):
+    """Adding an attack on resume computes its rows only and equals a fresh run of both; changing
+    a stored attack's settings, or dropping an attack, is still refused."""
+    cfg = dict(dataset="synthetic", targets=["p2plane"], budgets=[1.0], samples=2, batch_size=2,
+               dataset_params={"n_samples": 2})
+    run(RunConfig(attacks=["uniform"], **cfg), tmp_path / "grown", progress=False)
+    calls = []
+    both = RunConfig(attacks=["uniform", "sector-adaptive"],
+                     attack_params={"sector-adaptive": {"iterations": 1}}, **cfg)
+    run(both, tmp_path / "grown", progress=False, on_unit=calls.append)
+    assert len(calls) == 1  # one batch x the added attack
+    run(RunConfig(attacks=["uniform", "sector-adaptive"],
+                  attack_params={"sector-adaptive": {"iterations": 1}}, **cfg),
+        tmp_path / "fresh", progress=False)
+    cols = ["sample_id", "attack", "trans_err_xy"]
+    pd.testing.assert_frame_equal(_sorted(load_results(tmp_path / "grown"))[cols],
+                                  _sorted(load_results(tmp_path / "fresh"))[cols])
+    with pytest.raises(InputError, match="attack_params"):
+        run(RunConfig(attacks=["uniform", "sector-adaptive"],
+                      attack_params={"sector-adaptive": {"iterations": 2}}, **cfg),
+            tmp_path / "grown", progress=False)
+    with pytest.raises(InputError, match="attacks"):
+        run(RunConfig(attacks=["sector-adaptive"],
+                      attack_params={"sector-adaptive": {"iterations": 1}}, **cfg),
+            tmp_path / "grown", progress=False)
+
+
 def test_resume_refuses_results_of_a_changed_checkpoint(tmp_path):
     """The manifest stores a hash of each generator checkpoint; resuming after the file changed
     (e.g. a newly shipped model) is refused instead of silently mixing old and new results."""

@@ -230,14 +230,25 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     K samples of the split and stores its rows by sample id, so resuming with more samples only
     adds the rows of the new ones (the old rows are what a fresh run would compute again). A
     smaller one is, since the store would hold rows outside the run.
+
+    Likewise, more ``attacks`` (the stored ones kept, with their settings unchanged) are not a
+    difference: rows are stored by attack, so resuming only adds the new attacks' rows.
     """
     defaults = asdict(RunConfig())
+    old_attacks = old.get("attacks", defaults["attacks"]) or []
+    new_attacks = new.get("attacks", defaults["attacks"]) or []
+    added = set(new_attacks) - set(old_attacks) if set(old_attacks) <= set(new_attacks) else set()
     out = []
     for k in sorted(set(old) | set(new)):
         if k in EXECUTION_FIELDS:
             continue
         a, b = old.get(k, defaults.get(k)), new.get(k, defaults.get(k))
         if k == "samples" and _grows(a, b):
+            continue
+        if k == "attacks" and added and set(a) <= set(b):
+            continue
+        if k == "attack_params" and added and isinstance(a, Mapping) and isinstance(b, Mapping) \
+                and {n: p for n, p in b.items() if n not in added} == dict(a):
             continue
         if a != b:
             out.append(f"{k}: stored {a!r}, now {b!r}")
