@@ -168,7 +168,8 @@ def test_rows_without_a_manifest_are_not_adopted(small_run, tmp_path):
      "setting 'steps' of attack 'pgd' must be an integer, got 'abc'"),
     (["--attacks", "none", "--target-param", "p2plane.max_iterations=abc"],
      "setting 'max_iterations' of target 'p2plane' must be an integer, got 'abc'"),
-    (["--attacks", "none", "--dataset-param", "n_scan=-5"], "n_scan must be >= 6 points"),
+    (["--attacks", "none", "--dataset-param", "n_scan=-5"],
+     "setting 'n_scan' of dataset 'synthetic' must be >= 6"),
 ])
 def test_bad_plugin_settings_on_the_command_line(args, needle, tmp_path):
     res = cli.invoke(app, ["run", "--dataset", "synthetic", "--budgets", "1", "--samples", "1",

@@ -265,7 +265,7 @@ def test_kitti_sequence_must_be_a_plain_name(tmp_path, seq):
     (["--target-param", "p2plane.tol=0.5e1"], "setting 'tol' of target 'p2plane' must be > 0 and"),
     (["--target-param", "p2plane.damping=-1"], "setting 'damping' of target 'p2plane' must be"),
     (["--target-param", "p2plane.kdtree_workers=0"], "setting 'kdtree_workers'"),
-    (["--dataset-param", "noise_m=1e300"], "noise_m must be a number of metres from 0 to 10"),
+    (["--dataset-param", "noise_m=1e300"], "'noise_m' of dataset 'synthetic' must be >= 0 and <= 10"),
 ])
 def test_numeric_plugin_settings_are_range_checked_up_front(tmp_path, params, needle, user_error):
     out = tmp_path / "out"
@@ -509,3 +509,23 @@ def test_every_attack_declares_a_range_for_each_numeric_setting():
                 assert key in ranges, (name, key)
     with pytest.raises(InputError, match="queries"):
         registry.attacks.check_params("search", {"queries": 0})
+
+
+def test_every_dataset_declares_a_range_for_each_numeric_setting():
+    """As for targets and attacks: e.g. ``--dataset-param car_change=2`` is refused up front."""
+    import typing
+
+    from icpbench.core import registry
+
+    for name in registry.datasets.names():
+        ok, _ = registry.datasets.available(name)
+        if not ok:
+            continue
+        cls = registry.datasets.get(name)
+        ranges = getattr(cls, "param_ranges", {}) or {}
+        for key, hint in cls.param_types().items():
+            args = set(typing.get_args(hint)) | {hint}
+            if args & {int, float}:
+                assert key in ranges, (name, key)
+    with pytest.raises(InputError, match="car_change"):
+        registry.datasets.check_params("lidar-sim", {"car_change": 2.0})

@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from icpbench.core.errors import InputError
 from icpbench.core.filenames import plain_name
+from icpbench.core.registry import Range
 from icpbench.core.se3 import se3_exp
 from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
@@ -198,6 +199,13 @@ class BoreasDataset(Dataset):
     """
 
     name: ClassVar[str] = "boreas"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "sample_spacing_m": Range(0.0, lo_open=True), "keyframe_spacing_m": Range(0.0, lo_open=True),
+        "submap_window_m": Range(0.0), "max_teach_dist_m": Range(0.0, lo_open=True),
+        "n_points": Range(6, 10_000_000), "scan_voxel_m": Range(0.0, lo_open=True),
+        "min_range_m": Range(0.0), "map_voxel_m": Range(0.0, lo_open=True),
+        "map_radius_m": Range(0.0, lo_open=True), "normal_radius_m": Range(0.0, lo_open=True),
+        "offset_trans_m": Range(0.0, 100.0), "offset_rot_deg": Range(0.0, 180.0)}
     description: ClassVar[str] = "Boreas layout: repeat-drive scans vs submaps of a teach drive"
     icp_preset: ClassVar[str] = "lidar"
 

@@ -53,6 +53,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Sample
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.base import Dataset, Split, default_cache_dir
@@ -117,6 +118,16 @@ class LidarSimDataset(Dataset):
     """
 
     name: ClassVar[str] = "lidar-sim"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "n_points": Range(6, 10_000_000), "n_passes": Range(1, 1000), "test_passes": Range(0, 999),
+        "route_scale": Range(0.0, 100.0, lo_open=True),
+        "sample_spacing_m": Range(0.0, lo_open=True), "teach_spacing_m": Range(0.0, lo_open=True),
+        "submap_window_m": Range(0.0), "submap_radius_m": Range(0.0, lo_open=True),
+        "map_voxel_m": Range(0.0, lo_open=True), "scan_voxel_m": Range(0.0),
+        "town_seed": Range(0, 2**63 - 1), "lateral_offset_m": Range(0.0, 100.0),
+        "car_change": Range(0.0, 1.0), "truck_prob": Range(0.0, 1.0), "weather_rate": Range(0.0, 1.0),
+        "offset_trans_m": Range(0.0, 100.0), "offset_rot_deg": Range(0.0, 180.0),
+        "threads": Range(1, 1024)}
     description: ClassVar[str] = ("Simulated lidar town (teach and repeat, ~2.8 km loop: dense streets, "
                                   "open lots and fields, highway, underpass)")
     icp_preset: ClassVar[str] = "lidar"

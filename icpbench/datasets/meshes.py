@@ -36,6 +36,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset, Split
 from icpbench.datasets.synthetic_scene import random_transform
@@ -436,6 +437,10 @@ class MeshFolderDataset(Dataset):
     """
 
     name: ClassVar[str] = "meshes"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "test_fraction": Range(0.0, 1.0), "n_samples": Range(0, 10_000_000),
+        "n_map_points": Range(6, 100_000_000), "n_scan_points": Range(6, 100_000_000),
+        "noise_std": Range(0.0, 1e3), "max_trans": Range(0.0, 1e3), "max_yaw_deg": Range(0.0, 180.0)}
     description: ClassVar[str] = "Any folder of OBJ/OFF/PLY/STL meshes (ShapeNetCore layout included)"
     icp_preset: ClassVar[str] = "objects"
     default_budgets: ClassVar[tuple[float, ...]] = (0.02, 0.05)

@@ -26,6 +26,7 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset, Split
 from icpbench.datasets.meshes import MeshFolderDataset, ObjectSampling, mesh_sample
@@ -336,6 +337,10 @@ class ObjectsDataset(Dataset):
     """
 
     name: ClassVar[str] = "objects"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "n_samples": Range(0, 10_000_000), "test_fraction": Range(0.0, 1.0),
+        "n_map_points": Range(6, 100_000_000), "n_scan_points": Range(6, 100_000_000),
+        "noise_std": Range(0.0, 1e3), "max_trans": Range(0.0, 1e3), "max_yaw_deg": Range(0.0, 180.0)}
     description: ClassVar[str] = (
         "ShapeNet-style procedural objects in 11 categories (or a mesh folder), paper §IV-A"
     )

@@ -11,6 +11,7 @@ import math
 from typing import ClassVar
 
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Sample
 from icpbench.datasets.base import Dataset
 from icpbench.datasets.synthetic_scene import scene_sample
@@ -23,6 +24,9 @@ class SyntheticSceneDataset(Dataset):
     """Lidar-like synthetic scenes for tests and demos (no ray casting)."""
 
     name: ClassVar[str] = "synthetic"
+    param_ranges: ClassVar[dict[str, Range]] = {
+        "n_samples": Range(0, 10_000_000), "n_scan": Range(6, 10_000_000),
+        "n_map": Range(6, 100_000_000), "noise_m": Range(0.0, 10.0)}
     description: ClassVar[str] = "Small lidar-like synthetic scenes (ground, boxes, poles); tests/demos"
     icp_preset: ClassVar[str] = "lidar"
 
