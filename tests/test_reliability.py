@@ -276,22 +276,6 @@ def test_numeric_plugin_settings_are_range_checked_up_front(tmp_path, params, ne
     assert not out.exists()
 
 
-def test_every_target_declares_a_range_for_each_numeric_setting():
-    import typing
-
-    from icpbench.core import registry
-
-    for name in registry.targets.names():
-        ok, _ = registry.targets.available(name)
-        if not ok:
-            continue
-        cls = registry.targets.get(name)
-        for key, hint in cls.param_types().items():
-            args = set(typing.get_args(hint)) | {hint}
-            if args & {int, float}:
-                assert key in cls.param_ranges, (name, key)
-
-
 # -- KITTI: rigid poses, content-keyed cache, ranges, implausible coordinates ----------------------
 @pytest.fixture(scope="module")
 def kitti_root(tmp_path_factory) -> Path:
@@ -491,41 +475,33 @@ def test_checkpoint_messages_name_the_device_and_the_refused_pickle(tmp_path):
     assert "it may be a pickle that carries code" in msg and "weights_only=False" not in msg
 
 
-def test_every_attack_declares_a_range_for_each_numeric_setting():
-    """As for the targets: an out-of-range attack number is refused up front, naming it."""
+@pytest.mark.parametrize("kind", ["targets", "attacks", "datasets"])
+def test_every_plugin_declares_a_range_for_each_numeric_setting(kind):
+    """Every numeric setting of every target, attack and dataset has a declared range, so an
+    out-of-range number is refused up front, naming it (e.g. ``--dataset-param car_change=2``)."""
     import typing
 
     from icpbench.core import registry
 
-    for name in registry.attacks.names():
-        ok, _ = registry.attacks.available(name)
-        if not ok:
+    reg = getattr(registry, kind)
+    for name in reg.names():
+        if not reg.available(name)[0]:
             continue
-        cls = registry.attacks.get(name)
+        cls = reg.get(name)
         ranges = getattr(cls, "param_ranges", {}) or {}
         for key, hint in cls.param_types().items():
-            args = set(typing.get_args(hint)) | {hint}
-            if args & {int, float}:
+            if (set(typing.get_args(hint)) | {hint}) & {int, float}:
                 assert key in ranges, (name, key)
-    with pytest.raises(InputError, match="queries"):
-        registry.attacks.check_params("search", {"queries": 0})
 
 
-def test_every_dataset_declares_a_range_for_each_numeric_setting():
-    """As for targets and attacks: e.g. ``--dataset-param car_change=2`` is refused up front."""
-    import typing
-
+@pytest.mark.parametrize("kind,name,params,needle", [
+    ("attacks", "search", {"queries": 0}, "queries"),
+    ("datasets", "lidar-sim", {"car_change": 2.0}, "car_change"),
+    ("targets", "p2plane", {"tol": float("inf")}, "tol"),
+])
+def test_an_out_of_range_setting_is_refused_naming_it(kind, name, params, needle):
     from icpbench.core import registry
 
-    for name in registry.datasets.names():
-        ok, _ = registry.datasets.available(name)
-        if not ok:
-            continue
-        cls = registry.datasets.get(name)
-        ranges = getattr(cls, "param_ranges", {}) or {}
-        for key, hint in cls.param_types().items():
-            args = set(typing.get_args(hint)) | {hint}
-            if args & {int, float}:
-                assert key in ranges, (name, key)
-    with pytest.raises(InputError, match="car_change"):
-        registry.datasets.check_params("lidar-sim", {"car_change": 2.0})
+    with pytest.raises(InputError, match=needle):
+        getattr(registry, kind).check_params(name, params)
+
