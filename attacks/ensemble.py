@@ -136,10 +136,10 @@ class EnsembleAttack(Attack):
                     err = np.full(B, np.nan)
                 else:
                     gens = SampleGenerators.for_batch(batch, seed, name, budget_m)
-                    start_err = np.where(np.isnan(best_err), np.nan, best_err)
+                    # a scan no member has scored yet (NaN) makes the search measure its start
                     adv_np, err = self.search_attack.search(
                         batch, budget_m, oracle, gens, start=best.numpy(),
-                        start_err=None if np.isnan(start_err).any() else start_err)
+                        start_err=None if np.isnan(best_err).any() else best_err)
                     adv = torch.as_tensor(adv_np)
             elif name == "pgd":
                 if self.pgd_steps == 0 or surrogate is None or not surrogate.differentiable:

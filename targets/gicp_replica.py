@@ -30,7 +30,6 @@ No robust kernel (small_gicp's Python ``align`` has none) and a hard gate ``d < 
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -38,6 +37,7 @@ import numpy as np
 import torch
 
 from icpbench.core.errors import InputError
+from icpbench.core.map_cache import PerMapCache
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.registry import Range, check_ranges
 from icpbench.core.types import Registration
@@ -159,7 +159,7 @@ class SmallGICPReplica(Target):
         self.num_neighbors = int(num_neighbors)
         self.scan_cov_grad = bool(scan_cov_grad)
         self.threads = int(threads)
-        self._maps: weakref.WeakKeyDictionary[MapIndex, CovarianceMap] = weakref.WeakKeyDictionary()
+        self._maps: PerMapCache[CovarianceMap] = PerMapCache()
 
     def with_settings(self, **changes: Any) -> SmallGICPReplica:
         out = SmallGICPReplica(self.config.with_(**changes), num_neighbors=self.num_neighbors,
@@ -167,26 +167,13 @@ class SmallGICPReplica(Target):
         out._maps = self._maps
         return out
 
-    def __getstate__(self) -> dict[str, Any]:
-        # the per-map cache holds weak references (not picklable): a copy starts empty
-        return {**self.__dict__, "_maps": None}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._maps = weakref.WeakKeyDictionary()
-
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray | None = None) -> MapIndex:
         return MapIndex(map_points, map_normals, workers=self.config.kdtree_workers)
 
     def covariance_map(self, m: MapIndex) -> CovarianceMap:
         """The map with small_gicp's covariances (built once per ``MapIndex`` object, cached)."""
-        if not isinstance(m, MapIndex):
-            raise InputError(f"maps must be MapIndex objects, got {type(m).__name__}")
-        out = self._maps.get(m)
-        if out is None:
-            out = self._maps[m] = CovarianceMap(
-                m.points, map_covariances(m.points, self.num_neighbors, self.threads))
-        return out
+        return self._maps.get(m, lambda m: CovarianceMap(
+            m.points, map_covariances(m.points, self.num_neighbors, self.threads)))
 
     def register(self, scans: torch.Tensor, maps: Sequence[MapIndex],
                  T_init: torch.Tensor) -> Registration:

@@ -34,7 +34,6 @@ converged pose (the black box's pose, when the two agree) instead of the iterati
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -42,6 +41,7 @@ import numpy as np
 import torch
 
 from icpbench.core.errors import InputError
+from icpbench.core.map_cache import PerMapCache
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.registry import check_ranges
 from icpbench.core.types import Registration
@@ -150,7 +150,7 @@ class KissICPReplica(Target):
         self.config = base.with_(max_iterations=int(max_iterations), d_max=self.max_corr,
                                  kernel="geman_mcclure", cauchy_c=float(np.sqrt(self.kernel)),
                                  nn_reuse_m=0.0)
-        self._maps: weakref.WeakKeyDictionary[MapIndex, KissReplicaMap] = weakref.WeakKeyDictionary()
+        self._maps: PerMapCache[KissReplicaMap] = PerMapCache()
 
     def with_settings(self, **changes: Any) -> KissICPReplica:
         """A replica with some ``ICPConfig`` fields of the *resulting* config replaced (e.g.
@@ -163,26 +163,16 @@ class KissICPReplica(Target):
         out._maps = self._maps
         return out
 
-    def __getstate__(self) -> dict[str, Any]:
-        # the per-map cache holds weak references (not picklable): a copy starts empty
-        return {**self.__dict__, "_maps": None}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._maps = weakref.WeakKeyDictionary()
-
     def prepare(self, map_points: np.ndarray, map_normals: np.ndarray | None = None) -> MapIndex:
         return MapIndex(map_points, map_normals, workers=self.config.kdtree_workers)
 
     def kiss_map(self, m: MapIndex) -> KissReplicaMap:
         """KISS's thinned map of a batch map (built once per ``MapIndex`` object, then cached)."""
-        if not isinstance(m, MapIndex):
-            raise InputError(f"maps must be MapIndex objects, got {type(m).__name__}")
-        out = self._maps.get(m)
-        if out is None:
+        def build(m: MapIndex) -> KissReplicaMap:
             _, kept = kept_points(m.points, self.voxel_size, self.max_points_per_voxel)
-            out = self._maps[m] = KissReplicaMap(kept, self.voxel_size, self.max_corr)
-        return out
+            return KissReplicaMap(kept, self.voxel_size, self.max_corr)
+
+        return self._maps.get(m, build)
 
     def register(self, scans: torch.Tensor, maps: Sequence[MapIndex],
                  T_init: torch.Tensor) -> Registration:

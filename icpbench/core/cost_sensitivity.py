@@ -46,7 +46,6 @@ radians. NumPy, float64.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -54,6 +53,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from icpbench.core.errors import InputError
+from icpbench.core.map_cache import PerMapCache
 from icpbench.core.mapindex import MapIndex
 
 CostKind = Literal["plane", "point", "gicp"]
@@ -136,14 +136,12 @@ def plane_covariances(points: np.ndarray, k: int = GICP_NEIGHBOURS, eps: float =
     return np.einsum("kij,j,klj->kil", V, np.array([eps, 1.0, 1.0]), V)
 
 
-_MAP_COVARIANCES: weakref.WeakKeyDictionary[MapIndex, np.ndarray] = weakref.WeakKeyDictionary()
+_MAP_COVARIANCES: PerMapCache[np.ndarray] = PerMapCache()
 
 
 def map_covariances(map_index: MapIndex) -> np.ndarray:
     """GICP covariances (M, 3, 3) of a map's points, computed once per map object."""
-    if map_index not in _MAP_COVARIANCES:
-        _MAP_COVARIANCES[map_index] = plane_covariances(map_index.points)
-    return _MAP_COVARIANCES[map_index]
+    return _MAP_COVARIANCES.get(map_index, lambda m: plane_covariances(m.points))
 
 
 @dataclass(frozen=True)
