@@ -212,8 +212,10 @@ def run(
     dataset_param: Annotated[list[str] | None, typer.Option(
         help="Dataset setting KEY=VALUE, repeatable (e.g. root=/data/kitti).")] = None,
     executor: Annotated[str | None, typer.Option(
-        help="Where units run: local (this process) or ray (a Ray cluster: RAY_ADDRESS, else a "
-             "local one; pip install 'icpbench[ray]'). Results are the same. [default: local]")]
+        help="Where units run: local (this process), processes (one process per core of this "
+             "machine, one scan at a time; ICPBENCH_WORKERS sets how many) or ray (a Ray cluster: "
+             "RAY_ADDRESS, else a local one; pip install 'icpbench[ray]'). Results are the same. "
+             "[default: local]")]
     = None,
     strict_files: Annotated[bool | None, typer.Option(
         "--strict-files/--no-strict-files",
@@ -371,7 +373,8 @@ def leaderboard(
         help="Ensemble setting KEY=VALUE, repeatable (pgd_steps, pgd_step_size, "
              "sector_iterations, queries).")] = None,
     seed: Annotated[int, typer.Option(help="Attack seed.")] = 0,
-    executor: Annotated[str, typer.Option(help="local or ray (see `icpbench run`).")] = "local",
+    executor: Annotated[str, typer.Option(help="local, processes or ray (see `icpbench run`).")]
+    = "local",
     out: Annotated[str, typer.Option(help="Board folder (re-run to resume).")]
     = "results/leaderboard",
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
@@ -458,7 +461,8 @@ def danger_map(
     out: Annotated[str, typer.Option(help="Output directory (re-run to resume).")]
     = "runs/map",
     executor: Annotated[str, typer.Option(
-        help="local (one process) or ray (one worker per core); results do not depend on it.")]
+        help="local (one process), processes or ray (one worker per core); results do not "
+             "depend on it.")]
     = "local",
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
@@ -521,7 +525,7 @@ def validate_map(
     = "",
     attack_param: Annotated[list[str] | None, typer.Option(help="NAME.KEY=VALUE.")] = None,
     dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
-    executor: Annotated[str, typer.Option(help="local or ray; results do not depend on it.")]
+    executor: Annotated[str, typer.Option(help="local, processes or ray; results do not depend on it.")]
     = "local",
     out: Annotated[str, typer.Option(help="Output folder (re-run to resume).")]
     = "runs/danger-validation",

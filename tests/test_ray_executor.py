@@ -81,7 +81,7 @@ def test_same_command_same_results_file(tmp_path):
 def test_executor_names():
     assert check_executor("local") == "local"
     assert isinstance(get_executor("local"), LocalExecutor)
-    with pytest.raises(InputError, match="unknown executor 'dask'; valid executors: local, ray"):
+    with pytest.raises(InputError, match="unknown executor 'dask'; valid executors: local, processes, ray"):
         check_executor("dask")
     with pytest.raises(InputError, match="unknown executor"):
         _cfg(executor="dask").validate()

@@ -19,9 +19,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
+
+if TYPE_CHECKING:  # Open3D is imported where rays are cast: cached scans load without it
+    import open3d as o3d
 
 from icpbench.core.errors import InputError
 
@@ -138,6 +141,8 @@ def make_scene(vertices: np.ndarray, triangles: np.ndarray, threads: int = 1
     None for an empty mesh."""
     if len(triangles) == 0:
         return None
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene(nthreads=threads)
     scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)))
@@ -178,6 +183,8 @@ def cast_scan(scenes: Sequence[o3d.t.geometry.RaycastingScene | None], T_world_s
     rays = np.empty((len(dirs), 6), dtype=np.float32)
     rays[:, :3] = T[:3, 3]
     rays[:, 3:] = dw
+    import open3d as o3d
+
     rays_t = o3d.core.Tensor(rays)
     t_hit = np.full(len(dirs), np.inf, dtype=np.float32)
     source = np.full(len(dirs), -2, dtype=np.int8)

@@ -9,6 +9,12 @@ same seeds, and the driver appends rows to the results store itself, in item ord
 file does not depend on the executor (wall-time columns aside):
 
 * ``local`` (default, no dependency): one worker in this process; items one after another.
+* ``processes``: a pool of worker processes on this machine (the standard library's
+  ``concurrent.futures``; no dependency), one worker each, fed one *sample* at a time: a batch is
+  cut into single-sample items (a sample's rows do not depend on its batch, up to floating-point
+  rounding: a batch of one sums its products in another order) and its rows are put back in the
+  local executor's order, so a short run of a few batches still uses every core.
+  Workers: ``ICPBENCH_WORKERS`` if set, else the machine's CPUs divided by the torch threads.
 * ``ray``: a pool of Ray actors (Moritz et al., "Ray: A Distributed Framework for Emerging AI
   Applications", OSDI 2018), each holding its own worker, on the Ray cluster this process connects to
   (``RAY_ADDRESS``, else a running local cluster, else a new one on this machine). Work items are
@@ -25,18 +31,22 @@ plugin crashes inside is already turned into error rows by the worker.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
 from icpbench.core.errors import IcpbenchError, InputError, PluginUnavailableError
+from icpbench.harness.results import BAD_INPUT
 
 Row = dict[str, Any]
 
 #: Executors by name (``icpbench run --executor NAME``).
-EXECUTORS: tuple[str, ...] = ("local", "ray")
+EXECUTORS: tuple[str, ...] = ("local", "processes", "ray")
 
 
 @dataclass(frozen=True)
@@ -97,6 +107,109 @@ class LocalExecutor(Executor):
         for item in items:
             for k, rows in enumerate(worker.run(item)):
                 yield item, k, rows
+
+
+class ProcessExecutor(Executor):
+    """Single-sample work items on a pool of processes of this machine; rows in grid order.
+
+    Each process builds its own worker once (``worker.factory()``, as a Ray actor does) and then
+    computes one sample's units at a time, so the cores stay busy even when the run has fewer
+    batches than cores. The rows of a batch's samples are merged back into the order the local
+    executor writes (:func:`merge_sample_rows`), so the results file does not depend on the
+    executor. Processes are *spawned* (not forked: a forked copy of a process that already ran
+    torch's or OpenMP's thread pools can hang), so plugins registered at run time are unknown to
+    them, as to Ray workers: install them as a package or name their modules in
+    ``ICPBENCH_PLUGINS``.
+
+    Args:
+        workers: processes in the pool; default: the CPUs divided by ``threads``, at most one per
+            sample of the run.
+        threads: torch threads of each worker.
+    """
+
+    name: ClassVar[str] = "processes"
+
+    def __init__(self, workers: int | None = None, *, threads: int = 1) -> None:
+        if workers is not None and workers < 1:
+            raise InputError(f"workers must be >= 1, got {workers}")
+        self.workers = workers
+        self.threads = max(1, int(threads))
+        self._used_workers = 0
+
+    def describe(self) -> dict[str, Any]:
+        return {"executor": self.name, "workers": self._used_workers, "threads": self.threads}
+
+    def map(self, worker: Worker, items: Sequence[WorkItem]) -> Iterator[tuple[WorkItem, int, list[Row]]]:
+        if not items:
+            return
+        pieces = [[WorkItem(seed=it.seed, start=i, stop=i + 1, units=it.units)
+                   for i in range(it.start, it.stop)] for it in items]
+        n_pieces = sum(len(p) for p in pieces)
+        n = self.workers or max(1, (os.cpu_count() or 1) // self.threads)
+        n = min(n, n_pieces)
+        self._used_workers = n
+        ctx = multiprocessing.get_context("spawn")
+        pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_process_init,
+                                   initargs=(worker.factory(), self.threads))
+        try:
+            futures = [[pool.submit(_process_run, piece) for piece in group] for group in pieces]
+            for item, group in zip(items, futures, strict=True):
+                per_sample = [self._result(f) for f in group]
+                for k in range(len(item.units)):
+                    yield item, k, merge_sample_rows([rows[k] for rows in per_sample])
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    @staticmethod
+    def _result(future: Future) -> list[list[Row]]:
+        try:
+            return future.result()
+        except BrokenProcessPool as exc:
+            raise IcpbenchError(f"a worker process died ({exc}); re-run the same command to "
+                                "resume") from exc
+
+
+def merge_sample_rows(per_sample: Sequence[list[Row]]) -> list[Row]:
+    """One unit's rows of consecutive single-sample items, in the order one batch of those
+    samples gives: the rows of readable samples first, then those of skipped (bad-input)
+    samples, each target by target in the order the targets first appear, samples in order.
+
+    Args:
+        per_sample: the unit's rows of each sample, in sample order.
+    """
+    targets: dict[str, int] = {}
+    keyed = []
+    for s, rows in enumerate(per_sample):
+        for r in rows:
+            t = targets.setdefault(str(r.get("target")), len(targets))
+            bad = str(r.get("error") or "").startswith(BAD_INPUT)
+            keyed.append(((bad, t, s), r))
+    # targets first seen in a later sample (one whose batch had no readable sample) sort last,
+    # which is where a batch puts them too
+    return [r for _, r in sorted(keyed, key=lambda kr: kr[0])]
+
+
+_PROCESS_WORKER: Any = None
+_PROCESS_ERROR: Exception | None = None
+
+
+def _process_init(factory: Callable[[], Worker], threads: int) -> None:
+    """Pool initializer: build this process's worker (a failure is kept and raised by each item,
+    instead of breaking the pool with no message)."""
+    global _PROCESS_WORKER, _PROCESS_ERROR
+    import torch
+
+    torch.set_num_threads(threads)
+    try:
+        _PROCESS_WORKER = factory()
+    except Exception as exc:
+        _PROCESS_ERROR = exc
+
+
+def _process_run(item: WorkItem) -> list[list[Row]]:
+    if _PROCESS_ERROR is not None:
+        raise _PROCESS_ERROR
+    return list(_PROCESS_WORKER.run(item))
 
 
 class RayExecutor(Executor):
@@ -297,11 +410,19 @@ def check_executor(name: str) -> str:
 def get_executor(name: str, *, threads: int = 1) -> Executor:
     """Build the executor ``name`` for a run whose workers use ``threads`` torch threads each.
 
-    The Ray executor reads ``ICPBENCH_RAY_WORKERS`` (actor count) from the environment if set.
+    The Ray executor reads ``ICPBENCH_RAY_WORKERS`` (actor count) and the processes executor
+    ``ICPBENCH_WORKERS`` (process count) from the environment if set.
     """
     check_executor(name)
     if name == "local":
         return LocalExecutor()
+    if name == "processes":
+        env = os.environ.get("ICPBENCH_WORKERS")
+        try:
+            n = int(env) if env else None
+        except ValueError:
+            raise InputError(f"ICPBENCH_WORKERS must be an integer, got {env!r}") from None
+        return ProcessExecutor(n, threads=threads)
     workers = os.environ.get("ICPBENCH_RAY_WORKERS")
     try:
         n = int(workers) if workers else None
