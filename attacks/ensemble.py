@@ -24,7 +24,10 @@ Every member's output is registered by the target (a query) and the scan with th
 ``trans_err_xy`` is kept, so the ensemble's row is never below any member's on any scan (the
 members run with the attack seed they would have alone, so their outputs are the rows they
 would give alone). Per row: ``extra.winner`` (index of the winning member in :data:`MEMBERS`),
-``extra.err_<member>`` (each member's error on the target, NaN where skipped), ``extra.queries``.
+``extra.err_<member>`` (each member's error on the target, NaN where skipped), ``extra.queries``;
+with a search budget above 20 queries, ``extra.search_best_at_<q>``: the ensemble's error had the
+search stopped after q of its queries (q in :data:`~icpbench.attacks.search.TRACE_QUERIES`), so one
+large-budget run shows how the worst case grows with the budget.
 
 When the query search, started from the gradient member's result, still raises the error on a
 *differentiable* target by more than :data:`WEAK_GRADIENT_GAIN`, the gradient stalled where random
@@ -137,9 +140,12 @@ class EnsembleAttack(Attack):
                 else:
                     gens = SampleGenerators.for_batch(batch, seed, name, budget_m)
                     # a scan no member has scored yet (NaN) makes the search measure its start
+                    trace: dict[int, np.ndarray] = {}
                     adv_np, err = self.search_attack.search(
                         batch, budget_m, oracle, gens, start=best.numpy(),
-                        start_err=None if np.isnan(best_err).any() else best_err)
+                        start_err=None if np.isnan(best_err).any() else best_err, trace=trace)
+                    # the ensemble's worst case had it stopped after q search queries
+                    extra.update({f"search_best_at_{q}": e for q, e in trace.items()})
                     adv = torch.as_tensor(adv_np)
             elif name == "pgd":
                 if self.pgd_steps == 0 or surrogate is None or not surrogate.differentiable:

@@ -48,6 +48,9 @@ from icpbench.targets.oracle import QueryOracle
 
 #: Shares of the query budget after which the share of redrawn regions halves (Square Attack).
 _HALVINGS = (0.1, 0.25, 0.5, 0.75)
+#: Query counts at which a search records its best errors so far (``trace``): how the worst case
+#: grows with the budget, from one run.
+TRACE_QUERIES = (20, 50, 100, 200, 500, 1000, 2000, 5000, 10_000, 20_000, 50_000)
 #: Scale of the vertical part of a rigid move (horizontal moves shift a horizontal estimate more).
 _VERTICAL = 0.3
 
@@ -85,17 +88,20 @@ class QuerySearchAttack(Attack):
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None,
                  generator: SampleGenerators, oracle: QueryOracle
                  ) -> tuple[torch.Tensor, dict[str, np.ndarray]]:
-        adv, err = self.search(batch, budget_m, oracle, generator)
-        return torch.as_tensor(adv, dtype=batch.scans.dtype), {"search_err": err}
+        trace: dict[int, np.ndarray] = {}
+        adv, err = self.search(batch, budget_m, oracle, generator, trace=trace)
+        extra = {"search_err": err, **{f"search_err_at_{q}": e for q, e in trace.items()}}
+        return torch.as_tensor(adv, dtype=batch.scans.dtype), extra
 
     def search(self, batch: Batch, budget_m: float, oracle: QueryOracle,
                generator: SampleGenerators, start: np.ndarray | None = None,
-               start_err: np.ndarray | None = None, queries: int | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               start_err: np.ndarray | None = None, queries: int | None = None,
+               trace: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Search from ``start`` (B, N, 3) adversarial scans within lambda (default: a random
         horizontal translation by lambda) whose errors ``start_err`` (B,) are known (else the
         first query measures them). Returns the best scans (B, N, 3) float64 and their errors on
-        the target (B,) in metres (NaN where every query diverged)."""
+        the target (B,) in metres (NaN where every query diverged). ``trace``, if given, receives
+        the best errors (B,) after each count of :data:`TRACE_QUERIES` queries below the budget."""
         budget_q = self.queries if queries is None else int(queries)
         clean = batch.scans.detach().to(torch.float64).numpy()
         B, N, _ = clean.shape
@@ -139,6 +145,8 @@ class QuerySearchAttack(Attack):
             better = score(err) > score(best_err)
             s[better], v[better] = cand_s[better], cand_v[better]
             best_d[better], best_err[better] = d[better], err[better]
+            if trace is not None and q + 1 in TRACE_QUERIES and q + 1 < budget_q:
+                trace[q + 1] = best_err.copy()
         return clean + best_d, best_err
 
     def _family(self, batch: Batch, clean: np.ndarray, oracle: QueryOracle

@@ -94,6 +94,20 @@ def test_search_spends_its_queries_and_only_climbs(batch):
     np.testing.assert_allclose(out.extra["search_err"].numpy(), o2.errors(out.scans))
 
 
+def test_search_traces_its_best_error_as_the_budget_is_spent(batch):
+    o = _oracle(PointToPlaneICP("lidar"), batch)
+    out = QuerySearchAttack(queries=51, wedges=4).run(batch, LAM, oracle=o, generator=2)
+    at20, at50 = out.extra["search_err_at_20"].numpy(), out.extra["search_err_at_50"].numpy()
+    final = out.extra["search_err"].numpy()
+    assert "search_err_at_100" not in out.extra  # only counts below the budget
+    assert np.all(at20 <= at50) and np.all(at50 <= final)  # best so far: never falls
+    assert np.all(at20 > 0.5 * LAM)  # at least the start's error (a translation by lambda)
+    # no trace for a budget of 20 queries or less: default runs keep their columns
+    short = QuerySearchAttack(queries=20, wedges=4).run(batch, LAM, oracle=_oracle(
+        PointToPlaneICP("lidar"), batch), generator=2)
+    assert not any(k.startswith("search_err_at_") for k in short.extra)
+
+
 @pytest.mark.parametrize("target", [PointToPlaneICP("lidar"), KissICPTarget("lidar")],
                          ids=["p2plane", "kiss"])
 def test_ensemble_is_never_below_any_member(batch, target):
@@ -140,3 +154,14 @@ def test_runner_attacks_each_target_separately_with_surrogate_self(tmp_path):
     # each target was attacked through itself: the rows differ between targets
     a = ad.set_index(["sample_id", "target"]).trans_err_xy.unstack()
     assert not np.allclose(a["p2plane"], a["p2point"])
+
+
+def test_ensemble_traces_its_worst_case_against_the_search_budget(batch):
+    target = PointToPlaneICP("lidar")
+    ens = EnsembleAttack(pgd_steps=0, sector_iterations=1, queries=22)
+    out = ens.run(batch, LAM, surrogate=None, oracle=_oracle(target, batch), generator=3)
+    at20 = out.extra["search_best_at_20"].numpy()
+    before = np.nanmax(np.stack([out.extra[column(m)].numpy() for m in MEMBERS if m != "search"]),
+                       axis=0)
+    assert np.all(at20 >= before - 1e-12)  # the search starts from the members' best
+    assert np.all(out.extra["err_search"].numpy() >= at20)
