@@ -120,3 +120,30 @@ def test_a_worker_that_cannot_be_built_is_a_clear_error():
     items = [WorkItem(seed=0, start=0, stop=2, units=((1.0, "none"),))]
     with pytest.raises(InputError, match="no such data folder"):
         list(ProcessExecutor(1).map(_BrokenWorker(), items))
+
+
+class _SlowWorker:
+    def factory(self):
+        return _SlowWorkerImpl
+
+
+class _SlowWorkerImpl:
+    def run(self, item):
+        import time
+
+        time.sleep(0 if item.start == 0 else 60)
+        yield [{"sample_id": str(item.start), "target": "t", "error": ""}]
+
+
+def test_an_interrupted_pool_stops_its_scans_at_once():
+    import time
+
+    from icpbench.harness.executors import WorkItem
+
+    items = [WorkItem(seed=0, start=0, stop=1, units=((1.0, "none"),)),
+             WorkItem(seed=0, start=1, stop=3, units=((1.0, "none"),))]  # 60 s per sample
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        for _ in ProcessExecutor(3).map(_SlowWorker(), items):
+            raise KeyboardInterrupt  # Ctrl-C while the slow samples are in flight
+    assert time.perf_counter() - t0 < 30  # their processes were stopped, not waited for

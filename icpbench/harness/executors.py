@@ -157,8 +157,17 @@ class ProcessExecutor(Executor):
                 per_sample = [self._result(f) for f in group]
                 for k in range(len(item.units)):
                     yield item, k, merge_sample_rows([rows[k] for rows in per_sample])
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:
+            # interrupted (Ctrl-C) or failed: stop the scans in flight now rather than wait for
+            # them; their rows were not written, so a resumed run computes them again
+            # (the pool has no public way to stop a running task: its private process table is
+            # read before shutdown() clears it)
+            procs = list((getattr(pool, "_processes", None) or {}).values())
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                proc.terminate()
+            raise
+        pool.shutdown(wait=True)
 
     @staticmethod
     def _result(future: Future) -> list[list[Row]]:
@@ -197,8 +206,12 @@ def _process_init(factory: Callable[[], Worker], threads: int) -> None:
     """Pool initializer: build this process's worker (a failure is kept and raised by each item,
     instead of breaking the pool with no message)."""
     global _PROCESS_WORKER, _PROCESS_ERROR
+    import signal
+
     import torch
 
+    # Ctrl-C reaches the whole process group: only the driver handles it (it stops the pool)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     torch.set_num_threads(threads)
     try:
         _PROCESS_WORKER = factory()
