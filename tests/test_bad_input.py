@@ -364,7 +364,7 @@ def _cli_cases(tmp: Path, ckpt: dict) -> list[tuple[list[str], str]]:
         (RUN + ["--targets", "nope"], "unknown target 'nope'; valid targets: "),
         (["run", "--dataset", "nope"], "unknown dataset 'nope'; valid datasets: "),
         (RUN + ["--surrogate", "nope"], "unknown target 'nope'; valid targets: "),
-        (RUN + ["--executor", "nope"], "unknown executor 'nope'; valid executors: local, ray"),
+        (RUN + ["--executor", "nope"], "unknown executor 'nope'; valid executors: local, processes, ray"),
         (RUN + ["--budgets", "-1"], "budget must be a positive finite number"),
         (RUN + ["--budgets", "0"], "budget must be a positive finite number"),
         (RUN + ["--budgets", "nan"], "budget must be a positive finite number"),
