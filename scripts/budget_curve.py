@@ -2,7 +2,7 @@
 
 Reads one or more ``icpbench run`` folders whose ``ensemble`` ran with a search budget above 20
 queries (it then records its error after 20, 50, 100, ... search queries) and writes, into the
-parent folder of the first: ``budget_curve.csv`` (target, budget, queries, scans, mean, median,
+parent folder of the first: ``budget_curve.csv`` (run folder, target, budget, queries, scans, mean, median,
 uniform, over_uniform), ``budget_curve.md`` and ``budget_curve.png``.
 
 Usage (from the repository root)::
@@ -31,7 +31,9 @@ def main() -> None:
         q = manifest.get("attacks", {}).get("ensemble", {}).get("queries")
         if q is None:
             raise SystemExit(f"{run}: no ensemble settings in its manifest.json")
-        curves.append(budget_curve(load_results(run), int(q)))
+        c = budget_curve(load_results(run), int(q))
+        c.insert(0, "run", run.name)  # the folder names the variant (e.g. a target's settings)
+        curves.append(c)
     curve = pd.concat(curves, ignore_index=True)
     out = args.runs[0].parent
     curve.to_csv(out / "budget_curve.csv", index=False)
@@ -41,8 +43,8 @@ def main() -> None:
              "sector-adaptive, PGD), over the scans of each run; `x uniform` divides by the mean "
              "of its uniform member on the same scans. Written by `scripts/budget_curve.py` from "
              + ", ".join(f"`{r}`" for r in args.runs) + ".", ""]
-    for (target, lam), g in curve.groupby(["target", "budget"], sort=True):
-        lines += [f"## {target}, λ = {lam:g} m ({int(g.scans.max())} scans)", "",
+    for (run, target, lam), g in curve.groupby(["run", "target", "budget"], sort=False):
+        lines += [f"## {run} (target `{target}`), λ = {lam:g} m ({int(g.scans.max())} scans)", "",
                   "| search queries | mean [m] | median [m] | x uniform |", "|---|---|---|---|"]
         lines += [f"| {int(r.queries)} | {r['mean']:.2f} | {r['median']:.2f} | {r.over_uniform:.2f} |"
                   for _, r in g.iterrows()]
@@ -54,10 +56,11 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    for (target, lam), g in curve.groupby(["target", "budget"], sort=True):
+    for (run, lam), g in curve.groupby(["run", "budget"], sort=False):
         g = g[g.queries > 0]
-        ax.plot(g.queries, g.over_uniform, marker="o", label=f"{target}, λ = {lam:g} m")
-    ax.axhline(2.0, color="grey", ls="--", lw=1)
+        label = f"{run}, λ = {lam:g} m ({int(g.scans.max())} scans)"
+        ax.plot(g.queries, g.over_uniform, marker="o", label=label)
+    ax.axhline(2.0, color="grey", ls="--", lw=1, label="2x uniform")
     ax.set_xscale("log")
     ax.set_xlabel("search queries per scan")
     ax.set_ylabel("ensemble mean error / uniform's")
