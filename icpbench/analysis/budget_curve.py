@@ -53,10 +53,9 @@ def budget_curve(rows: pd.DataFrame, search_queries: int) -> pd.DataFrame:
         uni = g[f"extra.{column('uniform')}"]
         for q, err in points:
             ok = np.isfinite(err.to_numpy(dtype=float))
-            mean = float(err[ok].mean()) if ok.any() else float("nan")
+            # the means of no scan are NaN, as pandas gives them
+            mean, uniform = float(err[ok].mean()), float(uni[ok].mean())
             out.append({"target": target, "budget": float(budget), "queries": q,
-                        "scans": int(ok.sum()), "mean": mean,
-                        "median": float(err[ok].median()) if ok.any() else float("nan"),
-                        "uniform": float(uni[ok].mean()) if ok.any() else float("nan"),
-                        "over_uniform": mean / float(uni[ok].mean()) if ok.any() else float("nan")})
+                        "scans": int(ok.sum()), "mean": mean, "median": float(err[ok].median()),
+                        "uniform": uniform, "over_uniform": mean / uniform if ok.any() else np.nan})
     return pd.DataFrame(out)
