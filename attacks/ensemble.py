@@ -18,7 +18,14 @@ reports the worst over a fixed, diverse, adaptive set. Members, in order:
                        gradient); skipped when there is no differentiable surrogate
 ``search``             score-based random search (:mod:`icpbench.attacks.search`) started from the
                        best scan of the members before it
+``spoof``              opt-in (``spoof_queries`` > 0): the scan made to agree with the map at a
+                       wrong pose, the pose searched with queries (:mod:`icpbench.attacks.spoof`)
 =====================  =========================================================================
+
+``spoof`` runs last and from the clean scan, so turning it on leaves every other member's output
+as it was: the ensemble's row with it is, per scan, the larger of the row without it and the
+``spoof`` attack's own row (a test checks this). It is off by default until the committed boards
+are regenerated with it (docs/findings.md).
 
 Every member's output is registered by the target (a query) and the scan with the largest
 ``trans_err_xy`` is kept, so the ensemble's row is never below any member's on any scan (the
@@ -51,6 +58,7 @@ from icpbench.attacks.pgd import PGDAttack
 from icpbench.attacks.search import QuerySearchAttack
 from icpbench.attacks.sector import SectorAttack
 from icpbench.attacks.sector_adaptive import SectorAdaptiveAttack, score
+from icpbench.attacks.spoof import SpoofAttack
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.core.errors import InputError
 from icpbench.core.registry import Range
@@ -58,9 +66,15 @@ from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 
-MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "search")
+#: The members in the order they run; ``extra.winner`` indexes this tuple (new members are
+#: appended, so the winners of stored rows keep their meaning).
+MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "search",
+                            "spoof")
 #: Members that use nothing but the target's output pose.
-QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "search"})
+QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "search", "spoof"})
+#: Members that run only when asked for (``spoof_queries`` > 0); without them a row has no
+#: column of theirs and records the same settings as before they existed.
+OPT_IN: frozenset[str] = frozenset({"spoof"})
 
 #: Relative gain of the search over the gradient member that flags a weak gradient.
 WEAK_GRADIENT_GAIN = 0.1
@@ -81,6 +95,8 @@ class EnsembleAttack(Attack):
         pgd_step_size: its step as a fraction of lambda.
         sector_iterations: re-linearisations of the ``sector-adaptive`` member.
         queries: query budget of the ``search`` member per scan (0: skip it).
+        spoof_queries: query budget of the opt-in ``spoof`` member per scan (0, the default:
+            skip it).
     """
 
     name: ClassVar[str] = "ensemble"
@@ -92,15 +108,18 @@ class EnsembleAttack(Attack):
     uses_surrogate: ClassVar[bool] = True
     param_ranges: ClassVar[dict[str, Range]] = {
         "pgd_steps": Range(0, 100_000), "pgd_step_size": Range(0.0, 2.0, lo_open=True),
-        "sector_iterations": Range(0, 100_000), "queries": Range(0, 10_000_000)}
+        "sector_iterations": Range(0, 100_000), "queries": Range(0, 10_000_000),
+        "spoof_queries": Range(0, 10_000_000)}
 
     def __init__(self, *, strict: bool = False, pgd_steps: int = 5, pgd_step_size: float = 0.1,
-                 sector_iterations: int = 4, queries: int = 20, **params: Any) -> None:
+                 sector_iterations: int = 4, queries: int = 20, spoof_queries: int = 0,
+                 **params: Any) -> None:
         for nm, v in (("pgd_steps", pgd_steps), ("sector_iterations", sector_iterations),
-                      ("queries", queries)):
+                      ("queries", queries), ("spoof_queries", spoof_queries)):
             if isinstance(v, bool) or int(v) != v or int(v) < 0:
                 raise InputError(f"{self.name} {nm} must be an integer >= 0, got {v!r}")
         self.pgd_steps, self.queries = int(pgd_steps), int(queries)
+        self.spoof_queries = int(spoof_queries)
         self.members: dict[str, Attack] = {
             "uniform": UniformTranslationAttack(strict=strict),
             "normal": NormalTranslationAttack(strict=strict),
@@ -112,9 +131,13 @@ class EnsembleAttack(Attack):
         if self.pgd_steps:
             PGDAttack(steps=self.pgd_steps, step_size=self.pgd_step_size)  # checks the settings
         self.search_attack = QuerySearchAttack(strict=strict, queries=max(self.queries, 1))
+        if self.spoof_queries:
+            self.members["spoof"] = SpoofAttack(strict=strict, queries=self.spoof_queries)
+            params["spoof_queries"] = self.spoof_queries
+        self.active = tuple(m for m in MEMBERS if m not in OPT_IN or m in self.members)
         super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
                          sector_iterations=int(sector_iterations), queries=self.queries,
-                         members=list(MEMBERS), **params)
+                         members=list(self.active), **params)
 
     def _pgd(self, surrogate: Target) -> PGDAttack:
         """The PGD member for this surrogate: its own iteration cap, implicit gradient."""
@@ -133,6 +156,8 @@ class EnsembleAttack(Attack):
         winner = np.full(B, np.nan)
         extra: dict[str, np.ndarray] = {}
         for i, name in enumerate(MEMBERS):
+            if name not in self.active:
+                continue
             t0 = time.perf_counter()
             if name == "search":
                 if self.queries == 0:

@@ -366,6 +366,10 @@ def leaderboard(
     add_target: Annotated[list[str] | None, typer.Option(
         help="A further target plugin to rank with its defaults (repeatable): your own ICP.")]
     = None,
+    extra_attacks: Annotated[str | None, typer.Option(
+        help="Comma-separated attacks run on every variant beside the ensemble, with their "
+             "defaults (your own attack plugin too); a scan's worst case is the largest over the "
+             "ensemble and these; '' for none. [default: spoof]")] = None,
     dataset: Annotated[str, typer.Option(help="Dataset.")] = "lidar-sim",
     dataset_param: Annotated[list[str] | None, typer.Option(
         help="Dataset setting KEY=VALUE, repeatable.")] = None,
@@ -390,6 +394,8 @@ def leaderboard(
                                 dataset_params=_flat(dataset_param, "--dataset-param"),
                                 ensemble=_flat(ensemble_param, "--ensemble-param"),
                                 extra_targets=list(add_target or []))
+        if extra_attacks is not None:
+            cfg.extra_attacks = [a.strip() for a in extra_attacks.split(",") if a.strip()]
         if samples is not None:
             cfg.samples = samples
         if budgets is not None:

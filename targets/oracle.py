@@ -44,6 +44,15 @@ class QueryOracle:
         self.maps = list(maps)
         self.queries = np.zeros(len(batch), dtype=np.int64)
 
+    @classmethod
+    def prepared(cls, target: Target, batch: Batch) -> QueryOracle:
+        """The oracle of ``target`` on ``batch`` with its maps prepared here: the batch's
+        ``MapIndex`` for a differentiable target, ``target.prepare`` of each map otherwise (the
+        runner shares prepared maps across batches instead)."""
+        maps = batch.maps if target.differentiable else [
+            target.prepare(s.map, s.map_normals) for s in batch.samples]
+        return cls(target, batch, maps)
+
     @property
     def name(self) -> str:
         """The evaluated target's registry name."""

@@ -45,3 +45,13 @@ def user_error():
         assert "Traceback" not in res.output
 
     return check
+
+
+@pytest.fixture(scope="module")
+def scene_pair():
+    """Two 800-point scans of one synthetic scene (8,000-point map): a small batch to attack."""
+    from icpbench.core.types import Batch
+    from icpbench.datasets.synthetic_scene import scene_sample
+
+    return Batch.from_samples([scene_sample(n_scan=800, n_map=8000, seed=s, scene_seed=1)
+                               for s in (3, 4)])

@@ -50,9 +50,42 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     assert (out / "runs" / "p2point" / "results.csv").stat().st_mtime_ns == mtime
 
 
+def test_an_added_attack_raises_the_worst_case_and_computes_only_its_own_rows(tmp_path):
+    out = tmp_path / "board"
+    args = ["leaderboard", "--samples", "2", "--dataset", "synthetic", "--dataset-param",
+            "n_scan=600", "--dataset-param", "n_map=6000", "--budgets", "0.5", "--ensemble-param",
+            "queries=2", "--ensemble-param", "pgd_steps=1", "--ensemble-param",
+            "sector_iterations=1", "--variants", "p2point", "--extra-attacks", "", "--quiet",
+            "--out", str(out)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    before = pd.read_csv(out / "leaderboard.csv")
+    rows = pd.read_csv(out / "runs" / "p2point" / "results.csv")
+    res = runner.invoke(app, [*args, "--extra-attacks", "spoof"])
+    assert res.exit_code == 0, res.output
+    after = pd.read_csv(out / "leaderboard.csv")
+    grown = pd.read_csv(out / "runs" / "p2point" / "results.csv")
+    # the ensemble's rows are kept as they were; only the spoof rows were computed
+    pd.testing.assert_frame_equal(grown[grown.attack != "spoof"].reset_index(drop=True), rows)
+    sp = grown[grown.attack == "spoof"].set_index("sample_id").trans_err_xy
+    ens = rows[rows.attack == "ensemble"].set_index("sample_id").trans_err_xy
+    np.testing.assert_allclose(after.worst_mean, np.maximum(sp, ens.loc[sp.index]).mean(),
+                               rtol=1e-5)  # the CSV keeps 6 digits
+    np.testing.assert_allclose(after.ensemble_mean, before.worst_mean)
+    assert (after.worst_mean >= before.worst_mean).all()
+    won = after[[c for c in after if c.startswith("won_")]].sum(axis=1)
+    assert (won == after.scans).all() and int(after.won_extra_spoof.iloc[0]) == int((sp > ens).sum())
+    assert float(after.worst_mean.iloc[0]) > float(before.worst_mean.iloc[0])  # spoof won a scan
+    md = (out / "leaderboard.md").read_text()
+    assert "`spoof`" in md and "+ spoof" in md and "ensemble [m]" in md
+
+
 def test_unknown_variant_or_target_is_refused_with_the_valid_names():
     with pytest.raises(InputError, match="valid: p2plane"):
         LeaderboardConfig(variants=["p2plane (quantum)"]).resolve()
     with pytest.raises(InputError):
         LeaderboardConfig(extra_targets=["no-such-icp"]).resolve()
+    for bad in (["no-such-attack"], ["ensemble"], ["spoof", "spoof"]):
+        with pytest.raises(InputError):
+            LeaderboardConfig(extra_attacks=bad).resolve()
     assert Variant("a/b (c)", "p2plane").slug == "a-b-c"

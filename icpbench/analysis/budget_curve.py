@@ -44,12 +44,15 @@ def budget_curve(rows: pd.DataFrame, search_queries: int) -> pd.DataFrame:
     if not traced:
         raise InputError("the ensemble rows hold no search trace (run it with "
                          "--attack-param ensemble.queries=N, N > 20)")
-    fixed = [f"extra.{column(m)}" for m in MEMBERS if m != "search"]
+    # the members that run before the search (an opt-in member after it is not on the curve)
+    fixed = [f"extra.{column(m)}" for m in MEMBERS[:MEMBERS.index("search")]]
+    searched = f"extra.{column('search')}"
     out = []
     for (target, budget), g in e.groupby(["target", "budget"], sort=True):
         points = [(0, g[[c for c in fixed if c in g]].max(axis=1, skipna=True))]
         points += [(q, g[c]) for q, c in traced]
-        points.append((int(search_queries), g["trans_err_xy"]))
+        points.append((int(search_queries),
+                       g[[c for c in (*fixed, searched) if c in g]].max(axis=1, skipna=True)))
         uni = g[f"extra.{column('uniform')}"]
         for q, err in points:
             ok = np.isfinite(err.to_numpy(dtype=float))

@@ -13,6 +13,13 @@ every query member against the target's own output), at each budget lambda. A va
 * the ensemble over ``uniform`` (how much worse than translating the whole scan),
 * attack time per scan and queries per scan, and which member won how often.
 
+RobustBench keeps the lowest robust figure *anyone* found; so does this board: further attacks
+(``extra_attacks``, e.g. ``spoof``, or a user's own attack plugin) run on the same scans, and a
+scan's worst case is the largest error over the ensemble and them (a scan an attack moved beyond
+lambda does not count for it, :func:`summarise`). The ensemble alone is reported beside it, and the
+winner counts name the extra attacks too. Adding an attack to a finished board only computes that
+attack's rows.
+
 Rows are ranked by the mean amplification at the middle budget, most robust first. Every variant
 is an ordinary results folder (``<out>/runs/<variant>/``), so the board resumes where it stopped and
 each number can be traced to its rows. A user's own ICP joins as a target plugin
@@ -32,7 +39,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from icpbench.attacks.ensemble import MEMBERS, column
+from icpbench.attacks.ensemble import MEMBERS, OPT_IN, column
+from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
 from icpbench.harness.results import load_results, write_json_atomic
@@ -79,6 +87,11 @@ STANDARD_VARIANTS: tuple[Variant, ...] = (
 )
 
 
+#: Attacks the standard board runs beside the ensemble (each scan's worst case is the largest):
+#: ``spoof`` leads point-to-point ICPs beyond what the ensemble's members find (docs/findings.md).
+STANDARD_EXTRA_ATTACKS: tuple[str, ...] = ("spoof",)
+
+
 @dataclass
 class LeaderboardConfig:
     """What a board is computed from (recorded in its manifest).
@@ -90,6 +103,9 @@ class LeaderboardConfig:
         variants: labels of :data:`STANDARD_VARIANTS` to include (None: all).
         extra_targets: registry names of further target plugins, each a row with its defaults.
         ensemble: settings of the ``ensemble`` attack (``pgd_steps``, ``queries``, ...).
+        extra_attacks: registry names of further attacks run on every variant with their
+            defaults; a scan's worst case is the largest over the ensemble and them (default
+            :data:`STANDARD_EXTRA_ATTACKS`).
         seed: attack seed.
         batch_size: scans per batch.
         executor: ``local`` or ``ray`` (see ``icpbench run --executor``).
@@ -103,6 +119,7 @@ class LeaderboardConfig:
     variants: list[str] | None = None
     extra_targets: list[str] = field(default_factory=list)
     ensemble: dict[str, Any] = field(default_factory=dict)
+    extra_attacks: list[str] = field(default_factory=lambda: list(STANDARD_EXTRA_ATTACKS))
     seed: int = 0
     batch_size: int = 4
     executor: str = "local"
@@ -127,6 +144,12 @@ class LeaderboardConfig:
             chosen.append(Variant(t, t))
         if not chosen:
             raise InputError("the leaderboard has no variant to rank")
+        for a in self.extra_attacks:
+            registry.attacks.get(a)  # raises, listing the valid names
+            if a in ("none", "ensemble"):
+                raise InputError(f"{a!r} is always on the board; name other attacks to add")
+        if len(set(self.extra_attacks)) != len(self.extra_attacks):
+            raise InputError(f"an extra attack is named twice: {self.extra_attacks}")
         slugs = [v.slug for v in chosen]
         if len(set(slugs)) != len(slugs):
             raise InputError(f"two variants share a folder name: {slugs}")
@@ -135,7 +158,8 @@ class LeaderboardConfig:
     def run_config(self, v: Variant) -> RunConfig:
         """The ``icpbench run`` configuration of one variant."""
         return RunConfig(dataset=self.dataset, dataset_params=dict(self.dataset_params),
-                         split=self.split, attacks=["none", "ensemble"], targets=[v.target],
+                         split=self.split, attacks=["none", "ensemble", *self.extra_attacks],
+                         targets=[v.target],
                          budgets=list(self.budgets), samples=self.samples, seeds=[self.seed],
                          surrogate=SELF, batch_size=self.batch_size, executor=self.executor,
                          attack_params={"ensemble": dict(self.ensemble)} if self.ensemble else {},
@@ -170,13 +194,19 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
             on_variant(v, "running")
         run_grid(rc, out / "runs" / v.slug, progress=progress)
         runs[v.label] = out / "runs" / v.slug
-    board = summarise(runs, cfg.budgets)
+    board = summarise(runs, cfg.budgets, cfg.extra_attacks)
     write_board(board, out, cfg, skipped)
     return board
 
 
-def summarise(runs: dict[str, Path], budgets: Sequence[float]) -> pd.DataFrame:
-    """The board (one row per variant and budget) from the variants' results folders."""
+def summarise(runs: dict[str, Path], budgets: Sequence[float],
+              extra_attacks: Sequence[str] = ()) -> pd.DataFrame:
+    """The board (one row per variant and budget) from the variants' results folders.
+
+    A scan's worst case is the ensemble's error, or an extra attack's where it is larger (a
+    diverged estimate never wins; an extra attack's scan with points moved beyond lambda,
+    ``frac_over_budget`` > 0, is not counted and is reported as ``over_budget_<attack>``). With
+    extra attacks the ensemble's own mean is kept as ``ensemble_mean``."""
     rows = []
     for label, path in runs.items():
         df = load_results(path)
@@ -187,10 +217,26 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float]) -> pd.DataFrame:
             if e.empty:
                 continue
             err = e.trans_err_xy.to_numpy(dtype=float)
+            won_extra: dict[str, int] = {}
+            over: dict[str, int] = {}
+            by = e.sample_id.to_numpy()
+            ens_err = err.copy()
+            from_ensemble = np.ones(len(e), dtype=bool)
+            for a in extra_attacks:
+                x = df[(df.attack == a) & np.isclose(df.budget, lam)].set_index("sample_id")
+                x = x.reindex(by)
+                bad = x.frac_over_budget.to_numpy(dtype=float) > 0
+                xe = np.where(bad, np.nan, x.trans_err_xy.to_numpy(dtype=float))
+                better = score(xe) > score(err)
+                err = np.where(better, xe, err)
+                from_ensemble &= ~better
+                won_extra[a] = better
+                over[a] = int(bad.sum())
             ok = np.isfinite(err)
             amp = err / lam
             uni = e.get(f"extra.{column('uniform')}", pd.Series(np.nan, index=e.index))
-            win = e.get("extra.winner", pd.Series(np.nan, index=e.index)).dropna().astype(int)
+            win = e.get("extra.winner", pd.Series(np.nan, index=e.index))[from_ensemble]
+            win = win.dropna().astype(int)
             row = {
                 "variant": label, "budget": float(lam), "scans": int(len(e)),
                 "clean_mean": float(clean_err.mean()), "clean_median": float(clean_err.median()),
@@ -206,8 +252,20 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float]) -> pd.DataFrame:
             }
             row["over_uniform"] = row["worst_mean"] / row["uniform_mean"] \
                 if row["uniform_mean"] and math.isfinite(row["uniform_mean"]) else math.nan
+            if extra_attacks:
+                fin = np.isfinite(ens_err)
+                row["ensemble_mean"] = float(np.mean(ens_err[fin])) if fin.any() else math.nan
+                for a in extra_attacks:
+                    x = df[(df.attack == a) & np.isclose(df.budget, lam)]
+                    row["attack_s"] += float(x.attack_time_s.mean()) if len(x) else 0.0
+                    row["queries"] += float(x.get("extra.queries", pd.Series(0.0)).mean())
             for i, m in enumerate(MEMBERS):
                 row[f"won_{m}"] = int((win == i).sum())
+                ran = e.get(f"extra.{column(m)}")
+                row[f"ran_{m}"] = m not in OPT_IN or (ran is not None and bool(ran.notna().any()))
+            for a in extra_attacks:
+                row[f"won_extra_{a}"] = int(won_extra[a].sum())
+                row[f"over_budget_{a}"] = over[a]
             rows.append(row)
     board = pd.DataFrame(rows)
     if board.empty:
@@ -223,15 +281,25 @@ def _fmt(x: float, nd: int = 2) -> str:
     return "-" if x is None or not math.isfinite(float(x)) else f"{float(x):.{nd}f}"
 
 
+def ran_members(board: pd.DataFrame) -> list[str]:
+    """The ensemble members the board's rows ran (the opt-in ones only where some row has them)."""
+    return [m for m in MEMBERS if f"ran_{m}" not in board or board[f"ran_{m}"].any()]
+
+
 def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[str, str]) -> str:
     """The board as Markdown: the ranking, then time/queries and the members' wins."""
     budgets = sorted(board.budget.unique())
     order = list(dict.fromkeys(board.variant))
+    members = ran_members(board)
+    extras = list(cfg.extra_attacks)
+    also = (f" and, per scan, the larger error of the extra attack(s) "
+            f"{', '.join(f'`{a}`' for a in extras)} (*ensemble [m]*: the ensemble alone)"
+            if extras else "")
     lines = [
         "# ICP leaderboard: worst case under the attack ensemble",
         "",
         f"Data: `{cfg.dataset}` {cfg.split} split, {int(board.scans.max())} scans per variant; "
-        f"attack: `ensemble` (members {', '.join(MEMBERS)}) with `--surrogate self`; "
+        f"attack: `ensemble` (members {', '.join(members)}) with `--surrogate self`{also}; "
         f"errors are `trans_err_xy` in metres. Amplification = worst-case error / λ (a rigid "
         f"translation of the scan by λ gives about 1); *held* = share of scans with amplification "
         f"<= {SAFE_AMPLIFICATION:g}. Ranked by mean amplification at λ = "
@@ -241,27 +309,31 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
     head = ["#", "variant", "clean mean [m]"]
     for lam in budgets:
         head += [f"λ={lam:g}: mean [m]", "median [m]", "ampl.", "held", "× uniform"]
+        head += ["ensemble [m]"] if extras else []
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k, v in enumerate(order, 1):
         r = board[board.variant == v].set_index("budget")
         cells = [str(k), v, _fmt(r.clean_mean.iloc[0], 3)]
         for lam in budgets:
             if lam not in r.index:
-                cells += ["-"] * 5
+                cells += ["-"] * (6 if extras else 5)
                 continue
             x = r.loc[lam]
             cells += [_fmt(x.worst_mean), _fmt(x.worst_median), _fmt(x.amplification),
                       f"{100 * x.held_share:.0f}%", _fmt(x.over_uniform, 1)]
+            cells += [_fmt(x.ensemble_mean)] if extras else []
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "Attack cost per scan (seconds, queries) and the member that found each scan's "
               "worst case (counts over all budgets):", ""]
-    head = ["variant", *[f"λ={lam:g}: s / queries" for lam in budgets], *MEMBERS]
+    head = ["variant", *[f"λ={lam:g}: s / queries" for lam in budgets], *members,
+            *[f"+ {a}" for a in extras]]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for v in order:
         r = board[board.variant == v].set_index("budget")
         cells = [v] + [f"{_fmt(r.loc[lam].attack_s, 1)} / {_fmt(r.loc[lam].queries, 0)}"
                        if lam in r.index else "-" for lam in budgets]
-        cells += [str(int(r[f"won_{m}"].sum())) for m in MEMBERS]
+        cells += [str(int(r[f"won_{m}"].sum())) for m in members]
+        cells += [str(int(r[f"won_extra_{a}"].sum())) for a in extras]
         lines.append("| " + " | ".join(cells) + " |")
     weak = board[board.weak_gradient > 0]
     if not weak.empty:
@@ -269,6 +341,10 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
                   "more than 10%) on a share of scans: " + ", ".join(
                       f"{r.variant} λ={r.budget:g}: {100 * r.weak_gradient:.0f}%"
                       for r in weak.itertuples()) + "."]
+    over = {a: int(board[f"over_budget_{a}"].sum()) for a in extras}
+    if any(over.values()):
+        lines += ["", "Not counted (points moved beyond λ): " + ", ".join(
+            f"`{a}` on {n} scan(s)" for a, n in over.items() if n) + "."]
     if skipped:
         lines += ["", "Not ranked (their target refused the settings): " + "; ".join(
             f"{k}: {v}" for k, v in skipped.items())]
@@ -308,7 +384,9 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
                 skipped: dict[str, str]) -> None:
     """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    board.to_csv(out / "leaderboard.csv", index=False, float_format="%.6g")
+    unused = [f"won_{m}" for m in MEMBERS if m not in ran_members(board)]
+    board.drop(columns=unused + [c for c in board if c.startswith("ran_")]).to_csv(
+        out / "leaderboard.csv", index=False, float_format="%.6g")
     (out / "leaderboard.md").write_text(board_markdown(board, cfg, skipped))
     board_figure(board, out / "leaderboard.png")
     write_json_atomic(out / "manifest.json", {
