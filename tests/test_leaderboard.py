@@ -61,12 +61,13 @@ def test_an_added_attack_raises_the_worst_case_and_computes_only_its_own_rows(tm
     assert res.exit_code == 0, res.output
     before = pd.read_csv(out / "leaderboard.csv")
     rows = pd.read_csv(out / "runs" / "p2point" / "results.csv")
-    res = runner.invoke(app, [*args, "--extra-attacks", "spoof"])
+    res = runner.invoke(app, [*args, "--extra-attacks", "spoof,uniform"])  # uniform: no queries
     assert res.exit_code == 0, res.output
     after = pd.read_csv(out / "leaderboard.csv")
     grown = pd.read_csv(out / "runs" / "p2point" / "results.csv")
     # the ensemble's rows are kept as they were; only the spoof rows were computed
-    pd.testing.assert_frame_equal(grown[grown.attack != "spoof"].reset_index(drop=True), rows)
+    pd.testing.assert_frame_equal(
+        grown[~grown.attack.isin(["spoof", "uniform"])].reset_index(drop=True), rows)
     sp = grown[grown.attack == "spoof"].set_index("sample_id").trans_err_xy
     ens = rows[rows.attack == "ensemble"].set_index("sample_id").trans_err_xy
     np.testing.assert_allclose(after.worst_mean, np.maximum(sp, ens.loc[sp.index]).mean(),
@@ -76,6 +77,8 @@ def test_an_added_attack_raises_the_worst_case_and_computes_only_its_own_rows(tm
     won = after[[c for c in after if c.startswith("won_")]].sum(axis=1)
     assert (won == after.scans).all() and int(after.won_extra_spoof.iloc[0]) == int((sp > ens).sum())
     assert float(after.worst_mean.iloc[0]) > float(before.worst_mean.iloc[0])  # spoof won a scan
+    assert int(after.won_extra_uniform.iloc[0]) == 0  # the ensemble's own uniform member ties it
+    assert float(after.queries.iloc[0]) > float(before.queries.iloc[0])
     md = (out / "leaderboard.md").read_text()
     assert "`spoof`" in md and "+ spoof" in md and "ensemble [m]" in md
 

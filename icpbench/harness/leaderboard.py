@@ -258,7 +258,8 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
                 for a in extra_attacks:
                     x = df[(df.attack == a) & np.isclose(df.budget, lam)]
                     row["attack_s"] += float(x.attack_time_s.mean()) if len(x) else 0.0
-                    row["queries"] += float(x.get("extra.queries", pd.Series(0.0)).mean())
+                    q = x.get("extra.queries")  # an attack that queries nothing adds none
+                    row["queries"] += 0.0 if q is None else float(q.fillna(0.0).mean())
             for i, m in enumerate(MEMBERS):
                 row[f"won_{m}"] = int((win == i).sum())
                 ran = e.get(f"extra.{column(m)}")
