@@ -41,6 +41,7 @@ from icpbench.attacks.sector_adaptive import score
 from icpbench.core import sector_math
 from icpbench.core.cost_sensitivity import cost_of
 from icpbench.core.errors import InputError
+from icpbench.core.projection import clip_displacements
 from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -175,5 +176,4 @@ class QuerySearchAttack(Attack):
         sr = np.take_along_axis(s, region, axis=1)  # (B, N)
         vr = np.take_along_axis(v, region[..., None], axis=1)  # (B, N, 3)
         d = d0 + budget_m * (sr[..., None] * normals + vr)
-        norm = np.linalg.norm(d, axis=-1, keepdims=True)
-        return d * np.minimum(1.0, budget_m / np.maximum(norm, 1e-300))
+        return clip_displacements(d, budget_m)

@@ -33,6 +33,7 @@ import torch
 from icpbench.attacks.base import Attack
 from icpbench.core import cost_sensitivity as cs
 from icpbench.core.errors import InputError
+from icpbench.core.projection import clip_displacements
 from icpbench.core.registry import Range
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
@@ -136,7 +137,5 @@ class SectorAdaptiveAttack(Attack):
                     u[:2] = xi[j, :2] / err[j]
                 d = adv[b] - clean[b]
                 d[lin.index] += lin.displacement(u, self.step_size * budget_m)
-                norm = np.linalg.norm(d, axis=1, keepdims=True)
-                d *= np.minimum(1.0, budget_m / np.maximum(norm, 1e-300))
-                adv[b] = clean[b] + d
+                adv[b] = clean[b] + clip_displacements(d, budget_m)
         return best, best_k

@@ -43,6 +43,7 @@ import torch
 from icpbench.attacks.base import Attack, SampleGenerators
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core.errors import InputError
+from icpbench.core.projection import clip_displacements
 from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
@@ -76,9 +77,7 @@ def spoofed_displacement(points_map: np.ndarray, rotation: np.ndarray, offset: n
     found = idx < len(map_index)
     delta = np.zeros_like(points_map)
     delta[found] = map_index.points[idx[found]] - target[found]
-    norm = np.linalg.norm(delta, axis=1, keepdims=True)
-    delta *= np.minimum(1.0, budget_m / np.maximum(norm, 1e-300))
-    return delta @ rotation  # R^T delta per row: sensor frame
+    return clip_displacements(delta, budget_m) @ rotation  # R^T delta per row: sensor frame
 
 
 class SpoofAttack(Attack):

@@ -37,6 +37,7 @@ import torch
 
 from icpbench.core import sector_math as sector
 from icpbench.core.errors import InputError
+from icpbench.core.projection import clip_displacements
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
 
@@ -245,9 +246,7 @@ def _compute(batch: Batch, budget_m: float, surrogate: Target,
             n_s = m.assoc.normals_map[v] @ T_hat[j][:3, :3]  # R^T n per row: sensor frame
             d = adv[b] - clean[b]
             d[v] += step * sign[:, None] * n_s
-            norm = np.linalg.norm(d, axis=1, keepdims=True)
-            d *= np.minimum(1.0, budget_m / np.maximum(norm, 1e-300))
-            adv[b] = clean[b] + d
+            adv[b] = clean[b] + clip_displacements(d, budget_m)
     found = np.isfinite(best_val)
     return IteratedSectorResult(scans=best, best_iterate=np.where(found, best_k, np.nan),
                                 surrogate_xy=np.where(found, best_val, np.nan),

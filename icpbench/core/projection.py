@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from icpbench.core.errors import InputError
+
+
+def clip_displacements(d: np.ndarray, budget_m: float) -> np.ndarray:
+    """Displacements ``d`` (..., 3) in metres, each scaled back onto the ball of radius
+    ``budget_m`` where it is longer (a new array; the NumPy attacks' projection)."""
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    return d * np.minimum(1.0, budget_m / np.maximum(norm, 1e-300))
 
 
 def project_to_ball(clean: torch.Tensor, adv: torch.Tensor,

@@ -217,14 +217,13 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
             if e.empty:
                 continue
             err = e.trans_err_xy.to_numpy(dtype=float)
-            won_extra: dict[str, int] = {}
+            xs = {a: df[(df.attack == a) & np.isclose(df.budget, lam)] for a in extra_attacks}
+            won_extra: dict[str, np.ndarray] = {}
             over: dict[str, int] = {}
-            by = e.sample_id.to_numpy()
             ens_err = err.copy()
             from_ensemble = np.ones(len(e), dtype=bool)
-            for a in extra_attacks:
-                x = df[(df.attack == a) & np.isclose(df.budget, lam)].set_index("sample_id")
-                x = x.reindex(by)
+            for a, x in xs.items():
+                x = x.set_index("sample_id").reindex(e.sample_id.to_numpy())
                 bad = x.frac_over_budget.to_numpy(dtype=float) > 0
                 xe = np.where(bad, np.nan, x.trans_err_xy.to_numpy(dtype=float))
                 better = score(xe) > score(err)
@@ -255,8 +254,7 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
             if extra_attacks:
                 fin = np.isfinite(ens_err)
                 row["ensemble_mean"] = float(np.mean(ens_err[fin])) if fin.any() else math.nan
-                for a in extra_attacks:
-                    x = df[(df.attack == a) & np.isclose(df.budget, lam)]
+                for x in xs.values():
                     row["attack_s"] += float(x.attack_time_s.mean()) if len(x) else 0.0
                     q = x.get("extra.queries")  # an attack that queries nothing adds none
                     row["queries"] += 0.0 if q is None else float(q.fillna(0.0).mean())
