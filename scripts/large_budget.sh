@@ -42,7 +42,7 @@ if [[ -z "${CURVE_ONLY:-}" ]]; then
     esac
   done
 fi
-shopt -s nullglob
 folders=()
 for r in $ALL; do [[ -f "$OUT/$r/results.csv" ]] && folders+=("$OUT/$r"); done
+(( ${#folders[@]} )) || { echo "no finished rows under $OUT yet" >&2; exit 1; }
 python scripts/budget_curve.py "${folders[@]}"
