@@ -97,6 +97,9 @@ class SpoofAttack(Attack):
     needs_oracle: ClassVar[bool] = True
     param_ranges: ClassVar[dict[str, Range]] = {
         "queries": Range(1, 10_000_000), "directions": Range(1, 100_000)}
+    #: ``|D|`` / lambda of the first sweep and of the ladder (subclasses may change the schedule).
+    first_offset: ClassVar[float] = FIRST_OFFSET
+    ladder: ClassVar[tuple[float, ...]] = LADDER
 
     def __init__(self, *, strict: bool = False, queries: int = 24, directions: int = 8,
                  **params: Any) -> None:
@@ -112,6 +115,12 @@ class SpoofAttack(Attack):
         adv, err, offset = self.spoof(batch, budget_m, oracle, generator)
         extra = {"spoof_err": err, "spoof_offset_m": offset}
         return torch.as_tensor(adv, dtype=batch.scans.dtype), extra
+
+    def displacement(self, points_map: np.ndarray, rotation: np.ndarray, offset: np.ndarray,
+                     map_index: Any, budget_m: float, oracle: QueryOracle) -> np.ndarray:
+        """Displacements (N, 3), sensor frame, each of norm <= lambda, that lead the target towards
+        the pose shifted by ``offset`` (map frame); here :func:`spoofed_displacement`."""
+        return spoofed_displacement(points_map, rotation, offset, map_index, budget_m)
 
     def spoof(self, batch: Batch, budget_m: float, oracle: QueryOracle,
               generator: SampleGenerators) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -139,7 +148,7 @@ class SpoofAttack(Attack):
             for b in range(B):
                 h, m = hm[b]
                 D = m * budget_m * np.array([math.cos(h), math.sin(h), 0.0])
-                adv[b] += spoofed_displacement(p_map[b], R[b], D, maps[b], budget_m)
+                adv[b] += self.displacement(p_map[b], R[b], D, maps[b], budget_m, oracle)
             err = oracle.errors(adv)
             better = score(err) > score(best_err)
             best[better], best_err[better], best_hm[better] = adv[better], err[better], hm[better]
@@ -148,11 +157,11 @@ class SpoofAttack(Attack):
         used = 0
         for k in range(min(K, self.queries)):
             sweep_err[:, k] = score(query(np.stack([start + k * spacing,
-                                                    np.full(B, FIRST_OFFSET)], 1)))
+                                                    np.full(B, self.first_offset)], 1)))
             used += 1
         top = np.argsort(-sweep_err, axis=1, kind="stable")[:, :LADDER_HEADINGS]
         for j in range(min(LADDER_HEADINGS, K)):
-            for m in LADDER:
+            for m in self.ladder:
                 if used >= self.queries:
                     break
                 query(np.stack([start + top[:, j] * spacing, np.full(B, m)], 1))
@@ -163,7 +172,7 @@ class SpoofAttack(Attack):
             for b in range(B):
                 g = generator[b]
                 if np.isnan(hm[b, 0]):  # every query diverged so far: a fresh heading
-                    hm[b] = (float(torch.rand(1, generator=g)) * 2 * math.pi, FIRST_OFFSET)
+                    hm[b] = (float(torch.rand(1, generator=g)) * 2 * math.pi, self.first_offset)
                     continue
                 z = torch.randn(2, generator=g, dtype=torch.float64).numpy()
                 hm[b, 0] += 0.5 * spacing * z[0]

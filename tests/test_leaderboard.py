@@ -81,6 +81,17 @@ def test_an_added_attack_raises_the_worst_case_and_computes_only_its_own_rows(tm
     assert float(after.queries.iloc[0]) > float(before.queries.iloc[0])
     md = (out / "leaderboard.md").read_text()
     assert "`spoof`" in md and "+ spoof" in md and "ensemble [m]" in md
+    # a second extra attack that beats the first: each scan still counts one winner
+    res = runner.invoke(app, [*args, "--extra-attacks", "spoof,uniform,valley"])
+    assert res.exit_code == 0, res.output
+    both = pd.read_csv(out / "leaderboard.csv")
+    va = pd.read_csv(out / "runs" / "p2point" / "results.csv")
+    va = va[va.attack == "valley"].set_index("sample_id").trans_err_xy.loc[sp.index]
+    worst = np.maximum(np.maximum(sp, ens.loc[sp.index]), va)
+    np.testing.assert_allclose(both.worst_mean, worst.mean(), rtol=1e-5)
+    won = both[[c for c in both if c.startswith("won_")]].sum(axis=1)
+    assert (won == both.scans).all()
+    assert int(both.won_extra_valley.iloc[0]) == int((va > np.maximum(sp, ens.loc[sp.index])).sum())
 
 
 def test_unknown_variant_or_target_is_refused_with_the_valid_names():

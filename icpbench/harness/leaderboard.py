@@ -229,6 +229,8 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
                 better = score(xe) > score(err)
                 err = np.where(better, xe, err)
                 from_ensemble &= ~better
+                for b in won_extra:  # a scan has one winner: the last attack that raised it
+                    won_extra[b] &= ~better
                 won_extra[a] = better
                 over[a] = int(bad.sum())
             ok = np.isfinite(err)
