@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.optimize import linprog
 
-from icpbench.attacks.spoof import SpoofAttack
+from icpbench.attacks.spoof import SpoofAttack, spoofed_displacement
 from icpbench.core.cost_sensitivity import CostSpec, cost_of
 from icpbench.core.projection import clip_displacements
 from icpbench.targets.oracle import QueryOracle
@@ -62,10 +62,9 @@ def candidates(points_map: np.ndarray, offset: np.ndarray, map_index: Any,
     across = np.array([-head[1], head[0], 0.0])
     up = np.array([0.0, 0.0, 1.0])
     out = [np.zeros_like(points_map)]
-    for s in SPOOF_FRACTIONS:
-        target = points_map + s * offset
-        _, idx = map_index.query(target)
-        out.append(clip_displacements(map_index.points[idx] - target, budget_m))
+    eye = np.eye(3)  # the spoof move in the map frame
+    out += [spoofed_displacement(points_map, eye, s * offset, map_index, budget_m)
+            for s in SPOOF_FRACTIONS]
     for e in (head, -head, across, -across, up, -up):
         out.append(np.broadcast_to(budget_m * e, (n, 3)).copy())
     if map_index.normals is not None:
@@ -104,9 +103,8 @@ def line_climbs(points_map: np.ndarray, cand: np.ndarray, offset: np.ndarray, ma
     flat = q.reshape(-1, 3)
     dist, idx = map_index.query(flat)
     if cost.kind == "plane" and map_index.normals is not None:
-        normals = np.vstack([map_index.normals, np.zeros((1, 3))])  # sentinel row for idx == M
-        points = np.vstack([map_index.points, np.zeros((1, 3))])
-        r = np.einsum("ij,ij->i", normals[idx], flat - points[idx])
+        near = np.minimum(idx, len(map_index) - 1)  # idx == M (no neighbour) is masked below
+        r = np.einsum("ij,ij->i", map_index.normals[near], flat - map_index.points[near])
         r = np.where(np.isfinite(dist), r, np.inf)
     else:
         r = dist
