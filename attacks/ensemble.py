@@ -1,46 +1,49 @@
 """Attack ``ensemble``: per scan, the largest error on the *evaluated* target over a fixed standard
-set of attacks, white-box and query-only.
+set of attacks, white-box and query-only; the harness's one definition of the worst case.
 
 Beyond the paper; the ICP version of AutoAttack (Croce and Hein, "Reliable evaluation of adversarial
 robustness with an ensemble of diverse parameter-free attacks", ICML 2020): a robustness figure
 measured with one non-adaptive attack is an upper bound that is routinely wrong, so the harness
-reports the worst over a fixed, diverse, adaptive set. Members, in order:
+reports the worst over a fixed, diverse, adaptive set. :data:`MEMBERS` names every member in the
+order they run; :data:`DEFAULT_MEMBERS` are the ones that run unless ``members`` says otherwise:
 
 =====================  =========================================================================
-``uniform``            the whole scan translated by lambda (the paper's baseline)
-``normal``             every point by lambda along its map normal, projected to x-y (paper)
-``sector``             the analytic one-step point-to-plane worst case (Laconte et al., RA-L 2024)
+``uniform``            the whole scan translated by lambda (the paper's baseline; every board's
+                       reference, so always worth its one query)
+``normal``             every point by lambda along its map normal, projected to x-y (paper);
+                       not a default member (it never won a scan of the 48-scan board)
+``sector``             the analytic one-step point-to-plane worst case (Laconte et al., RA-L 2024);
+                       not a default member (never won a scan)
 ``sector-adaptive``    the one-step worst case of the target's *own* cost, re-linearised where the
                        target lands (queries only; :mod:`icpbench.attacks.sector_adaptive`)
 ``pgd``                projected gradient ascent through the run's surrogate, started from the best
                        scan of the members before it: with ``--surrogate self`` the target itself,
                        or its differentiable replica, at its own converged pose (implicit
                        gradient); skipped when there is no differentiable surrogate
+``spoof``              the scan made to agree with the map at a wrong pose, the pose searched with
+                       queries (:mod:`icpbench.attacks.spoof`), from the clean scan
+``valley``             spoof with each point's move chosen so the target's model cost falls all the
+                       way to the wrong pose (:mod:`icpbench.attacks.valley`), from the clean scan
 ``search``             score-based random search (:mod:`icpbench.attacks.search`) started from the
-                       best scan of the members before it
-``spoof``              opt-in (``spoof_queries`` > 0): the scan made to agree with the map at a
-                       wrong pose, the pose searched with queries (:mod:`icpbench.attacks.spoof`)
+                       best scan of every member before it
 =====================  =========================================================================
 
-``spoof`` runs last and from the clean scan, so turning it on leaves every other member's output
-as it was: the ensemble's row with it is, per scan, the larger of the row without it and the
-``spoof`` attack's own row (a test checks this). It is off by default until the committed boards
-are regenerated with it (docs/findings.md).
-
 Every member's output is registered by the target (a query) and the scan with the largest
-``trans_err_xy`` is kept, so the ensemble's row is never below any member's on any scan (the
-members run with the attack seed they would have alone, so their outputs are the rows they
-would give alone). Per row: ``extra.winner`` (index of the winning member in :data:`MEMBERS`),
-``extra.err_<member>`` (each member's error on the target, NaN where skipped), ``extra.queries``;
-with a search budget above 20 queries, ``extra.search_best_at_<q>``: the ensemble's error had the
-search stopped after q of its queries (q in :data:`~icpbench.attacks.search.TRACE_QUERIES`), so one
-large-budget run shows how the worst case grows with the budget.
+``trans_err_xy`` is kept, so the ensemble's row is never below any member's on any scan. The
+members run with the attack seed they would have alone, so the members that start from the clean
+scan give the rows they would give alone. Per row: ``extra.winner`` (index of the winning member in
+:data:`MEMBERS`), ``extra.err_<member>`` (each member's error on the target; a member that did not
+run has no column, one that was skipped on a scan NaN), ``extra.s_<member>`` (its seconds per scan),
+``extra.queries``; with a search budget above 20 queries, ``extra.search_best_at_<q>``: the
+ensemble's error had the search stopped after q of its queries (q in
+:data:`~icpbench.attacks.search.TRACE_QUERIES`), so one large-budget run shows how the worst case
+grows with the budget.
 
-When the query search, started from the gradient member's result, still raises the error on a
-*differentiable* target by more than :data:`WEAK_GRADIENT_GAIN`, the gradient stalled where random
-search climbs: it is weak there (masked, truncated or aimed at the wrong pose), and the ICP is not
-as robust as the gradient alone would say. A warning is logged (logger ``icpbench``) and
-``extra.weak_gradient`` is 1 on those scans.
+When the query search, started from the gradient member's result (where that was the best so
+far), still raises the error on a *differentiable* target by more than :data:`WEAK_GRADIENT_GAIN`,
+the gradient stalled where random search climbs: it is weak there (masked, truncated or aimed at the
+wrong pose), and the ICP is not as robust as the gradient alone would say. A warning is logged
+(logger ``icpbench``) and ``extra.weak_gradient`` is 1 on those scans.
 """
 
 from __future__ import annotations
@@ -60,21 +63,29 @@ from icpbench.attacks.sector import SectorAttack
 from icpbench.attacks.sector_adaptive import SectorAdaptiveAttack, score
 from icpbench.attacks.spoof import SpoofAttack
 from icpbench.attacks.uniform import UniformTranslationAttack
+from icpbench.attacks.valley import ValleyAttack
 from icpbench.core.errors import InputError
 from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 
-#: The members in the order they run; ``extra.winner`` indexes this tuple (new members are
-#: appended, so the winners of stored rows keep their meaning).
-MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "search",
-                            "spoof")
+#: Query budgets of ``spoof`` and ``valley`` in the ensemble, the headings each queries first and
+#: the headings it screens by the map's misfit before (docs/methods.md, "The standard ensemble").
+SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 16, 8, 0
+#: The search member stops a scan after this many queries in a row without a larger error.
+SEARCH_PATIENCE = 8
+
+#: Every member, in the order they run; ``extra.winner`` indexes this tuple. The one place that
+#: names the members: the leaderboard, budget curves and tables read it from here.
+MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "spoof",
+                            "valley", "search")
+#: The members that run by default (``members`` setting): every member that won a scan of the
+#: 48-scan board, and ``uniform``, the reference of every "x uniform" figure.
+DEFAULT_MEMBERS: tuple[str, ...] = ("uniform", "sector-adaptive", "pgd", "spoof", "valley",
+                                    "search")
 #: Members that use nothing but the target's output pose.
-QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "search", "spoof"})
-#: Members that run only when asked for (``spoof_queries`` > 0); without them a row has no
-#: column of theirs and records the same settings as before they existed.
-OPT_IN: frozenset[str] = frozenset({"spoof"})
+QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "spoof", "valley", "search"})
 
 #: Relative gain of the search over the gradient member that flags a weak gradient.
 WEAK_GRADIENT_GAIN = 0.1
@@ -87,57 +98,93 @@ def column(member: str) -> str:
     return "err_" + member.replace("-", "_")
 
 
+def parse_members(members: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
+    """The members named by ``members`` (comma-separated text or a list; None: the defaults), in
+    the order of :data:`MEMBERS`.
+
+    Raises:
+        InputError: an unknown or repeated name, or no member at all.
+    """
+    if members is None:
+        return DEFAULT_MEMBERS
+    names = [m.strip() for m in (members.split(",") if isinstance(members, str) else members)]
+    names = [m for m in names if m]
+    unknown = [m for m in names if m not in MEMBERS]
+    if unknown:
+        raise InputError(f"ensemble members: unknown {', '.join(map(repr, unknown))}; valid: "
+                         f"{', '.join(MEMBERS)}")
+    if len(set(names)) != len(names):
+        raise InputError(f"ensemble members: a member is named twice in {names}")
+    if not names:
+        raise InputError(f"ensemble members: none given; valid: {', '.join(MEMBERS)}")
+    return tuple(m for m in MEMBERS if m in names)
+
+
 class EnsembleAttack(Attack):
     """Worst case per scan over the standard members (module docstring).
 
     Args:
+        members: the members to run (comma-separated names of :data:`MEMBERS`, run in that order;
+            default :data:`DEFAULT_MEMBERS`).
         pgd_steps: ascent steps of the ``pgd`` member (0: skip it).
         pgd_step_size: its step as a fraction of lambda.
         sector_iterations: re-linearisations of the ``sector-adaptive`` member.
         queries: query budget of the ``search`` member per scan (0: skip it).
-        spoof_queries: query budget of the opt-in ``spoof`` member per scan (0, the default:
-            skip it).
+        patience: the search stops a scan after this many queries in a row without a larger
+            error (0: it spends every query).
+        spoof_queries, valley_queries: query budgets of ``spoof`` and ``valley`` per scan.
+        directions: headings each of them queries in its first sweep.
+        screen: headings each of them ranks by the map's misfit before choosing which to query
+            (:func:`~icpbench.attacks.spoof.misfit`; 0: an even fan, no screen).
     """
 
     name: ClassVar[str] = "ensemble"
     description: ClassVar[str] = (
-        "Per scan, the worst error on the evaluated target over uniform, normal, sector, "
-        "sector-adaptive, PGD (through the target or its replica) and a query search"
+        "Per scan, the worst error on the evaluated target over uniform, sector-adaptive, PGD "
+        "(through the target or its replica), spoof, valley and a query search from the best"
     )
     needs_oracle: ClassVar[bool] = True
     uses_surrogate: ClassVar[bool] = True
     param_ranges: ClassVar[dict[str, Range]] = {
         "pgd_steps": Range(0, 100_000), "pgd_step_size": Range(0.0, 2.0, lo_open=True),
         "sector_iterations": Range(0, 100_000), "queries": Range(0, 10_000_000),
-        "spoof_queries": Range(0, 10_000_000)}
+        "spoof_queries": Range(1, 10_000_000), "valley_queries": Range(1, 10_000_000),
+        "directions": Range(1, 100_000), "screen": Range(0, 100_000),
+        "patience": Range(0, 10_000_000)}
 
-    def __init__(self, *, strict: bool = False, pgd_steps: int = 5, pgd_step_size: float = 0.1,
-                 sector_iterations: int = 4, queries: int = 20, spoof_queries: int = 0,
-                 **params: Any) -> None:
-        for nm, v in (("pgd_steps", pgd_steps), ("sector_iterations", sector_iterations),
-                      ("queries", queries), ("spoof_queries", spoof_queries)):
-            if isinstance(v, bool) or int(v) != v or int(v) < 0:
-                raise InputError(f"{self.name} {nm} must be an integer >= 0, got {v!r}")
+    def __init__(self, *, strict: bool = False, members: str | None = None, pgd_steps: int = 5,
+                 pgd_step_size: float = 0.1, sector_iterations: int = 4, queries: int = 20,
+                 spoof_queries: int = SPOOF_QUERIES, valley_queries: int = VALLEY_QUERIES,
+                 directions: int = DIRECTIONS, screen: int = SCREEN,
+                 patience: int = SEARCH_PATIENCE, **params: Any) -> None:
+        for nm, v, lo in (("pgd_steps", pgd_steps, 0), ("sector_iterations", sector_iterations, 0),
+                          ("queries", queries, 0), ("spoof_queries", spoof_queries, 1),
+                          ("valley_queries", valley_queries, 1), ("directions", directions, 1),
+                          ("screen", screen, 0), ("patience", patience, 0)):
+            if isinstance(v, bool) or int(v) != v or int(v) < lo:
+                raise InputError(f"{self.name} {nm} must be an integer >= {lo}, got {v!r}")
+        self.active = parse_members(members)
         self.pgd_steps, self.queries = int(pgd_steps), int(queries)
-        self.spoof_queries = int(spoof_queries)
+        self.pgd_step_size = float(pgd_step_size)
+        if self.pgd_steps:
+            PGDAttack(steps=self.pgd_steps, step_size=self.pgd_step_size)  # checks the settings
+        self.search_attack = QuerySearchAttack(strict=strict, queries=max(self.queries, 1),
+                                               patience=int(patience))
+        spoofing = dict(directions=int(directions), screen=int(screen))
         self.members: dict[str, Attack] = {
             "uniform": UniformTranslationAttack(strict=strict),
             "normal": NormalTranslationAttack(strict=strict),
             "sector": SectorAttack(strict=strict),
             "sector-adaptive": SectorAdaptiveAttack(strict=strict,
                                                     iterations=int(sector_iterations)),
+            "spoof": SpoofAttack(strict=strict, queries=int(spoof_queries), **spoofing),
+            "valley": ValleyAttack(strict=strict, queries=int(valley_queries), **spoofing),
         }
-        self.pgd_step_size = float(pgd_step_size)
-        if self.pgd_steps:
-            PGDAttack(steps=self.pgd_steps, step_size=self.pgd_step_size)  # checks the settings
-        self.search_attack = QuerySearchAttack(strict=strict, queries=max(self.queries, 1))
-        if self.spoof_queries:
-            self.members["spoof"] = SpoofAttack(strict=strict, queries=self.spoof_queries)
-            params["spoof_queries"] = self.spoof_queries
-        self.active = tuple(m for m in MEMBERS if m not in OPT_IN or m in self.members)
         super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
                          sector_iterations=int(sector_iterations), queries=self.queries,
-                         members=list(self.active), **params)
+                         spoof_queries=int(spoof_queries), valley_queries=int(valley_queries),
+                         directions=int(directions), screen=int(screen),
+                         patience=int(patience), members=list(self.active), **params)
 
     def _pgd(self, surrogate: Target) -> PGDAttack:
         """The PGD member for this surrogate: its own iteration cap, implicit gradient."""
@@ -160,6 +207,7 @@ class EnsembleAttack(Attack):
                 continue
             t0 = time.perf_counter()
             if name == "search":
+                from_gradient = winner == MEMBERS.index("pgd")  # the search starts there
                 if self.queries == 0:
                     err = np.full(B, np.nan)
                 else:
@@ -180,6 +228,11 @@ class EnsembleAttack(Attack):
                                                       budget_m, surrogate=surrogate)
                     adv = adv.to(torch.float64)
                     err = oracle.errors(adv)
+            elif name in ("spoof", "valley"):  # their own best is measured already
+                gens = SampleGenerators.for_batch(batch, seed, name, budget_m)
+                member = self.members[name]
+                adv_np, err, _ = member.spoof(batch, budget_m, oracle, gens)  # type: ignore[attr-defined]
+                adv = torch.as_tensor(adv_np)
             else:
                 member = self.members[name]
                 adv = member.run(batch, budget_m, surrogate=surrogate, generator=seed,
@@ -195,9 +248,11 @@ class EnsembleAttack(Attack):
                 best_err[better], winner[better] = err[better], i
         extra["winner"] = winner
         weak = np.zeros(B)
-        g, q = extra[column("pgd")], extra[column("search")]
-        if getattr(oracle.target, "differentiable", False) and not np.isnan(g).all():
-            weak = (score(q) > (1 + WEAK_GRADIENT_GAIN) * score(g)).astype(np.float64)
+        g, q = extra.get(column("pgd")), extra.get(column("search"))
+        if g is not None and q is not None and getattr(oracle.target, "differentiable", False) \
+                and not np.isnan(g).all():
+            weak = (from_gradient & (score(q) > (1 + WEAK_GRADIENT_GAIN) * score(g))
+                    ).astype(np.float64)
             if weak.any():
                 log.warning("ensemble: on %d of %d scans of the differentiable target %r the query "
                             "search raised the gradient member's error by more than %d%%: the "

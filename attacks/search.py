@@ -25,7 +25,9 @@ with probability 1/2 a pure normal move (``s_r = +-1``, ``v_r = 0``), else a pur
 (``v_r`` a random unit vector, its vertical part shrunk by 0.3). The candidate is kept when the
 target's error grows. The subset shrinks as the budget is spent (Square Attack's schedule: a share
 ``p`` of the regions, halved after 10, 25, 50 and 75% of the queries). One query per scan and step,
-every scan of the batch in one call.
+every scan of the batch in one call. With a ``patience``, a scan whose error has not grown in that
+many queries in a row stops (its remaining queries are not spent): the search spends queries where
+it still climbs.
 """
 
 from __future__ import annotations
@@ -63,6 +65,8 @@ class QuerySearchAttack(Attack):
         queries: queries per scan (the start's evaluation included), >= 1.
         wedges: azimuth wedges (regions = 2 x wedges: two range rings).
         p_init: initial share of the regions redrawn per query, in (0, 1].
+        patience: a scan stops after this many queries in a row without a larger error
+            (0: never; every scan spends the whole budget).
     """
 
     name: ClassVar[str] = "search"
@@ -73,16 +77,20 @@ class QuerySearchAttack(Attack):
     needs_oracle: ClassVar[bool] = True
     param_ranges: ClassVar[dict[str, Range]] = {
         "queries": Range(1, 10_000_000), "wedges": Range(1, 100_000),
-        "p_init": Range(0.0, 1.0, lo_open=True)}
+        "p_init": Range(0.0, 1.0, lo_open=True), "patience": Range(0, 10_000_000)}
 
     def __init__(self, *, strict: bool = False, queries: int = 100, wedges: int = 16,
-                 p_init: float = 0.5, **params: Any) -> None:
-        for nm, v, lo in (("queries", queries, 1), ("wedges", wedges, 1)):
+                 p_init: float = 0.5, patience: int = 0, **params: Any) -> None:
+        for nm, v, lo in (("queries", queries, 1), ("wedges", wedges, 1),
+                          ("patience", patience, 0)):
             if isinstance(v, bool) or int(v) != v or int(v) < lo:
                 raise InputError(f"{self.name} {nm} must be an integer >= {lo}, got {v!r}")
         if not 0 < float(p_init) <= 1:
             raise InputError(f"{self.name} p_init must be in (0, 1], got {p_init}")
         self.queries, self.wedges, self.p_init = int(queries), int(wedges), float(p_init)
+        self.patience = int(patience)
+        if self.patience:
+            params["patience"] = self.patience
         super().__init__(strict=strict, queries=self.queries, wedges=self.wedges,
                          p_init=self.p_init, **params)
 
@@ -126,7 +134,13 @@ class QuerySearchAttack(Attack):
             used = 1
         else:
             best_err = np.asarray(start_err, dtype=np.float64).copy()
+        stale = np.zeros(B, dtype=np.int64)  # queries since each scan's error last grew
         for q in range(used, budget_q):
+            live = np.flatnonzero(stale < self.patience) if self.patience else np.arange(B)
+            if live.size == 0:  # every scan stopped: the best errors stand for the rest
+                if trace is not None:
+                    trace.update({t: best_err.copy() for t in TRACE_QUERIES if q < t < budget_q})
+                break
             frac = q / max(budget_q, 1)
             p = self.p_init * 0.5 ** sum(frac >= h for h in _HALVINGS)
             m = max(1, int(round(p * R)))
@@ -142,8 +156,11 @@ class QuerySearchAttack(Attack):
                 cand_s[b, pick] = np.where(mode, sign, 0.0)
                 cand_v[b, pick] = np.where(mode[:, None], 0.0, dirs)
             d = self._displace(d0, normals, region, cand_s, cand_v, budget_m)
-            err = oracle.errors(clean + d)
+            err = np.full(B, np.nan)
+            err[live] = oracle.errors((clean + d)[live], live if live.size < B else None)
             better = score(err) > score(best_err)
+            better[np.setdiff1d(np.arange(B), live)] = False
+            stale = np.where(better, 0, stale + 1)
             s[better], v[better] = cand_s[better], cand_v[better]
             best_d[better], best_err[better] = d[better], err[better]
             if trace is not None and q + 1 in TRACE_QUERIES and q + 1 < budget_q:

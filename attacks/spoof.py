@@ -22,6 +22,9 @@ back towards lambda beyond (docs/methods.md, "The spoof attack"). Hence a search
 evaluated target's answers:
 
 1. ``directions`` headings (a random rotation of an even fan, per scan) at ``|D| = 2 lambda``;
+   with ``screen`` > ``directions``, a fan of ``screen`` headings is ranked first without a query
+   by the map's *misfit* at the shifted pose (:func:`misfit`: how far the scan points lie from the
+   map at ``p + D`` beyond what lambda can close), and only the ``directions`` best are queried;
 2. the two best headings at ``|D|`` = 2.5, 3 and 4 lambda (:data:`LADDER`);
 3. the remaining queries: random steps from the best ``(heading, |D|)`` (heading by a normal step
    of half the fan's spacing, ``|D|`` by a log-normal factor), kept when the error grows.
@@ -55,6 +58,9 @@ FIRST_OFFSET = 2.0
 LADDER = (2.5, 3.0, 4.0)
 #: Headings of the sweep that get the ladder.
 LADDER_HEADINGS = 2
+#: Misfit of one point (metres) is capped here, in units of lambda (a point far from the map at
+#: the shifted pose counts the same however far it is).
+MISFIT_CAP = 2.0
 #: Bounds of ``|D|`` / lambda in the random steps, and the log-normal scale of a step.
 OFFSET_BOUNDS = (1.0, 8.0)
 OFFSET_STEP = 0.2
@@ -80,6 +86,29 @@ def spoofed_displacement(points_map: np.ndarray, rotation: np.ndarray, offset: n
     return clip_displacements(delta, budget_m) @ rotation  # R^T delta per row: sensor frame
 
 
+def misfit(points_map: np.ndarray, offset: np.ndarray, map_index: Any, budget_m: float) -> float:
+    """How badly the scan can be made to agree with the map at the pose shifted by ``offset``:
+    the mean over finite points of ``min(max(d_i - lambda, 0), MISFIT_CAP lambda)``, ``d_i`` the
+    distance of ``p_i + D`` to its nearest map point (metres; 0 where every point can be put on
+    the map). A heading along which the scene repeats (a street, a facade) has a small misfit;
+    one that crosses walls a large one. Costs one nearest-neighbour query of the scan, no target
+    query.
+
+    Args:
+        points_map: (N, 3) scan points at the true pose, map frame.
+        offset: (3,) offset D, map frame, metres.
+        map_index: the map (``query``).
+        budget_m: lambda.
+    """
+    ok = np.isfinite(points_map).all(axis=1)
+    if not ok.any():
+        return 0.0
+    dist, _ = map_index.query(points_map[ok] + offset)
+    cap = MISFIT_CAP * budget_m
+    return float(np.mean(np.minimum(np.maximum(np.nan_to_num(dist, posinf=np.inf) - budget_m,
+                                               0.0), cap)))
+
+
 class SpoofAttack(Attack):
     """Lead the target to a wrong pose the scan is made to agree with (module docstring).
 
@@ -87,6 +116,8 @@ class SpoofAttack(Attack):
         queries: queries per scan, >= 1 (the schedule is cut short below
             ``directions + LADDER_HEADINGS * len(LADDER)``).
         directions: headings of the first sweep, >= 1.
+        screen: headings ranked by :func:`misfit` before the sweep, of which the ``directions``
+            best are queried (0 or <= ``directions``: no screen, the sweep is an even fan).
     """
 
     name: ClassVar[str] = "spoof"
@@ -96,17 +127,22 @@ class SpoofAttack(Attack):
     )
     needs_oracle: ClassVar[bool] = True
     param_ranges: ClassVar[dict[str, Range]] = {
-        "queries": Range(1, 10_000_000), "directions": Range(1, 100_000)}
+        "queries": Range(1, 10_000_000), "directions": Range(1, 100_000),
+        "screen": Range(0, 100_000)}
     #: ``|D|`` / lambda of the first sweep and of the ladder (subclasses may change the schedule).
     first_offset: ClassVar[float] = FIRST_OFFSET
     ladder: ClassVar[tuple[float, ...]] = LADDER
 
     def __init__(self, *, strict: bool = False, queries: int = 24, directions: int = 8,
-                 **params: Any) -> None:
-        for nm, v in (("queries", queries), ("directions", directions)):
-            if isinstance(v, bool) or int(v) != v or int(v) < 1:
-                raise InputError(f"{self.name} {nm} must be an integer >= 1, got {v!r}")
+                 screen: int = 0, **params: Any) -> None:
+        for nm, v, lo in (("queries", queries, 1), ("directions", directions, 1),
+                          ("screen", screen, 0)):
+            if isinstance(v, bool) or int(v) != v or int(v) < lo:
+                raise InputError(f"{self.name} {nm} must be an integer >= {lo}, got {v!r}")
         self.queries, self.directions = int(queries), int(directions)
+        self.screen = int(screen) if int(screen) > self.directions else 0
+        if self.screen:
+            params["screen"] = self.screen
         super().__init__(strict=strict, queries=self.queries, directions=self.directions, **params)
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None,
@@ -134,8 +170,17 @@ class SpoofAttack(Attack):
         p_map = np.einsum("bij,bnj->bni", R, clean) + T_gt[:, None, :3, 3]
         maps = batch.maps
         K = self.directions
-        spacing = 2 * math.pi / K
+        fan = self.screen or K  # headings of the first sweep's fan
+        spacing = 2 * math.pi / fan
         start = generator.rand(dtype=torch.float64).numpy() * spacing  # (B,)
+        # the headings (B, K) of the sweep: the whole fan, or its K best by misfit
+        heads = start[:, None] + np.arange(fan)[None] * spacing
+        if self.screen:
+            bad = np.array([[misfit(p_map[b], self.first_offset * budget_m
+                                    * np.array([math.cos(h), math.sin(h), 0.0]), maps[b],
+                                    budget_m) for h in heads[b]] for b in range(B)])
+            keep = np.sort(np.argsort(bad, axis=1, kind="stable")[:, :K], axis=1)
+            heads = np.take_along_axis(heads, keep, axis=1)
 
         best = clean.copy()
         best_err = np.full(B, np.nan)
@@ -156,7 +201,7 @@ class SpoofAttack(Attack):
 
         used = 0
         for k in range(min(K, self.queries)):
-            sweep_err[:, k] = score(query(np.stack([start + k * spacing,
+            sweep_err[:, k] = score(query(np.stack([heads[:, k],
                                                     np.full(B, self.first_offset)], 1)))
             used += 1
         top = np.argsort(-sweep_err, axis=1, kind="stable")[:, :LADDER_HEADINGS]
@@ -164,7 +209,8 @@ class SpoofAttack(Attack):
             for m in self.ladder:
                 if used >= self.queries:
                     break
-                query(np.stack([start + top[:, j] * spacing, np.full(B, m)], 1))
+                query(np.stack([np.take_along_axis(heads, top[:, j:j + 1], 1)[:, 0],
+                                np.full(B, m)], 1))
                 used += 1
         lo, hi = OFFSET_BOUNDS
         while used < self.queries:

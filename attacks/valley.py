@@ -194,6 +194,7 @@ class ValleyAttack(SpoofAttack):
     Args:
         queries: queries per scan, >= 1.
         directions: headings of the first sweep, >= 1.
+        screen: headings ranked by the map's misfit before the sweep (``spoof``'s setting).
     """
 
     name: ClassVar[str] = "valley"
@@ -204,8 +205,9 @@ class ValleyAttack(SpoofAttack):
     ladder: ClassVar[tuple[float, ...]] = (2.5, 3.0)
 
     def __init__(self, *, strict: bool = False, queries: int = 16, directions: int = 8,
-                 **params: Any) -> None:
-        super().__init__(strict=strict, queries=queries, directions=directions, **params)
+                 screen: int = 0, **params: Any) -> None:
+        super().__init__(strict=strict, queries=queries, directions=directions, screen=screen,
+                         **params)
 
     def displacement(self, points_map: np.ndarray, rotation: np.ndarray, offset: np.ndarray,
                      map_index: Any, budget_m: float, oracle: QueryOracle) -> np.ndarray:

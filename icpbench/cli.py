@@ -357,10 +357,15 @@ def table(
 
 @app.command()
 def leaderboard(
+    domain: Annotated[str, typer.Option(
+        help="Standard domain: 'town' (the default simulated town and sensor) or 'unseen' "
+             "(town 101, 64-beam sensor).")] = "town",
     samples: Annotated[int | None, typer.Option(
-        help="Scans per variant (the first K of the split). [default: 16]")] = None,
+        help="Scans per variant (the first K of the split); departs from the standard protocol. "
+             "[default: the protocol's, 48]")] = None,
     budgets: Annotated[str | None, typer.Option(
-        help="Comma-separated budgets λ (metres). [default: 0.5,1,2]")] = None,
+        help="Comma-separated budgets λ (metres); departs from the standard protocol. "
+             "[default: the protocol's, 1]")] = None,
     variants: Annotated[str | None, typer.Option(
         help="Comma-separated labels of the standard variants to rank. [default: all]")] = None,
     add_target: Annotated[list[str] | None, typer.Option(
@@ -368,32 +373,47 @@ def leaderboard(
     = None,
     extra_attacks: Annotated[str | None, typer.Option(
         help="Comma-separated attacks run on every variant beside the ensemble, with their "
-             "defaults (your own attack plugin too); a scan's worst case is the largest over the "
-             "ensemble and these; '' for none. [default: spoof]")] = None,
-    dataset: Annotated[str, typer.Option(help="Dataset.")] = "lidar-sim",
+             "defaults (your own attack plugin); a scan's worst case is the largest over the "
+             "ensemble and these. [default: none]")] = None,
+    dataset: Annotated[str | None, typer.Option(
+        help="Dataset; departs from the standard protocol. [default: the domain's, lidar-sim]")]
+    = None,
     dataset_param: Annotated[list[str] | None, typer.Option(
-        help="Dataset setting KEY=VALUE, repeatable.")] = None,
+        help="Dataset setting KEY=VALUE, repeatable; departs from the standard protocol.")] = None,
     ensemble_param: Annotated[list[str] | None, typer.Option(
-        help="Ensemble setting KEY=VALUE, repeatable (pgd_steps, pgd_step_size, "
-             "sector_iterations, queries).")] = None,
-    seed: Annotated[int, typer.Option(help="Attack seed.")] = 0,
+        help="Ensemble setting KEY=VALUE, repeatable (members, pgd_steps, pgd_step_size, "
+             "sector_iterations, queries, patience, spoof_queries, valley_queries, directions, "
+             "screen); departs from the standard protocol.")] = None,
+    seed: Annotated[int | None, typer.Option(
+        help="Attack seed; departs from the standard protocol. [default: 0]")] = None,
     executor: Annotated[str, typer.Option(help="local, processes or ray (see `icpbench run`).")]
     = "local",
-    out: Annotated[str, typer.Option(help="Board folder (re-run to resume).")]
-    = "results/leaderboard",
+    out: Annotated[str | None, typer.Option(
+        help="Board folder (re-run to resume). [default: results/leaderboard, "
+             "results/leaderboard-unseen for the unseen domain]")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Rank ICP variants by the worst case the attack ensemble finds against each (adaptive:
-    --surrogate self); writes leaderboard.md/.csv/.png and one results folder per variant."""
+    --surrogate self), under the standard protocol of a domain unless told otherwise; writes
+    leaderboard.md/.csv/.png and one results folder per variant."""
     from icpbench.harness.leaderboard import STANDARD_VARIANTS, LeaderboardConfig, run_leaderboard
 
     out_dir: Path | None = None
     try:
-        out_dir = _out_dir(out)
-        cfg = LeaderboardConfig(dataset=dataset, seed=seed, executor=executor,
-                                dataset_params=_flat(dataset_param, "--dataset-param"),
-                                ensemble=_flat(ensemble_param, "--ensemble-param"),
-                                extra_targets=list(add_target or []))
+        out_dir = _out_dir(out if out is not None else
+                           "results/leaderboard" if domain == "town" else
+                           f"results/leaderboard-{domain}")
+        cfg = LeaderboardConfig.for_domain(domain, executor=executor,
+                                           extra_targets=list(add_target or []))
+        if dataset is not None:
+            cfg.dataset, cfg.dataset_params = dataset, {}
+        if dataset_param:
+            cfg.dataset_params = {**cfg.dataset_params,
+                                  **_flat(dataset_param, "--dataset-param")}
+        if ensemble_param:
+            cfg.ensemble = _flat(ensemble_param, "--ensemble-param")
+        if seed is not None:
+            cfg.seed = seed
         if extra_attacks is not None:
             cfg.extra_attacks = [a.strip() for a in extra_attacks.split(",") if a.strip()]
         if samples is not None:
@@ -408,6 +428,11 @@ def leaderboard(
             # a label may contain commas only if it is a known one: re-join split pieces
             cfg.variants = labels if all(lb in known for lb in labels) else [variants.strip()]
         n = len(cfg.resolve())
+        proto = cfg.protocol()
+        if not quiet:
+            typer.echo(f"protocol: {proto.name} v{proto.version}, domain {proto.domain} "
+                       f"({proto.dataset}, {proto.samples} scans, budgets "
+                       f"{', '.join(f'{b:g}' for b in proto.budgets)} m)", err=True)
 
         def note(v, status: str) -> None:
             if not quiet:

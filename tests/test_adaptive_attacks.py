@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.attacks.ensemble import MEMBERS, EnsembleAttack, column
+from icpbench.attacks.ensemble import DEFAULT_MEMBERS, MEMBERS, EnsembleAttack, column
 from icpbench.attacks.normal import NormalTranslationAttack
 from icpbench.attacks.search import QuerySearchAttack
 from icpbench.attacks.sector import SectorAttack
@@ -108,7 +108,8 @@ def test_search_traces_its_best_error_as_the_budget_is_spent(batch):
                          ids=["p2plane", "kiss"])
 def test_ensemble_is_never_below_any_member(batch, target):
     surrogate = self_surrogate(target)
-    ens = EnsembleAttack(pgd_steps=1, sector_iterations=1, queries=3)
+    ens = EnsembleAttack(members=",".join(MEMBERS), pgd_steps=1, sector_iterations=1, queries=3,
+                         spoof_queries=2, valley_queries=2)
     out = ens.run(batch, LAM, surrogate=surrogate, oracle=_oracle(target, batch), generator=7)
     _within_budget(out.scans, batch, LAM)
     o = _oracle(target, batch)
@@ -121,7 +122,6 @@ def test_ensemble_is_never_below_any_member(batch, target):
         err = o.errors(attack.run(batch, LAM, generator=7, **kw).scans)
         np.testing.assert_allclose(out.extra[column(name)].numpy(), err, rtol=1e-9)
         assert np.all(final >= err - 1e-9)
-    assert column("spoof") not in out.extra  # opt-in, off by default
     recorded = np.stack([out.extra[column(m)].numpy() if m in ens.active else np.full(2, np.nan)
                          for m in MEMBERS])
     np.testing.assert_allclose(final, np.nanmax(recorded, axis=0), rtol=1e-9)
@@ -156,10 +156,40 @@ def test_runner_attacks_each_target_separately_with_surrogate_self(tmp_path):
 
 def test_ensemble_traces_its_worst_case_against_the_search_budget(batch):
     target = PointToPlaneICP("lidar")
-    ens = EnsembleAttack(pgd_steps=0, sector_iterations=1, queries=22)
+    ens = EnsembleAttack(members="uniform,sector-adaptive,search", sector_iterations=1,
+                         queries=22)
     out = ens.run(batch, LAM, surrogate=None, oracle=_oracle(target, batch), generator=3)
     at20 = out.extra["search_best_at_20"].numpy()
     first = MEMBERS[:MEMBERS.index("search")]  # the members that run before the search
-    before = np.nanmax(np.stack([out.extra[column(m)].numpy() for m in first]), axis=0)
+    before = np.nanmax(np.stack([out.extra[column(m)].numpy() for m in first
+                                 if column(m) in out.extra]), axis=0)
     assert np.all(at20 >= before - 1e-12)  # the search starts from the members' best
     assert np.all(out.extra["err_search"].numpy() >= at20)
+
+
+def test_search_patience_stops_a_scan_on_the_same_path_and_saves_its_queries(batch):
+    """A scan's random draws do not depend on when the others stop, so with a patience each scan
+    follows the path of the full search and stops on it: never above the full search's error,
+    equal to it where the scan ran to the end, and its queries are not spent."""
+    target = PointToPlaneICP("lidar")
+    full = QuerySearchAttack(queries=16, wedges=4).run(batch, LAM, oracle=_oracle(target, batch),
+                                                       generator=5)
+    lazy = QuerySearchAttack(queries=16, wedges=4, patience=2).run(
+        batch, LAM, oracle=_oracle(target, batch), generator=5)
+    q = lazy.extra["queries"].numpy()
+    e_full, e_lazy = full.extra["search_err"].numpy(), lazy.extra["search_err"].numpy()
+    assert np.all(q <= 16) and q.min() < 16
+    assert np.all(e_lazy <= e_full + 1e-12)
+    np.testing.assert_allclose(e_lazy[q == 16], e_full[q == 16], rtol=1e-12)
+    with pytest.raises(InputError):
+        QuerySearchAttack(patience=-1)
+
+
+def test_ensemble_members_are_named_once_and_checked():
+    assert EnsembleAttack().active == DEFAULT_MEMBERS
+    assert set(DEFAULT_MEMBERS) <= set(MEMBERS) and MEMBERS[-1] == "search"
+    ens = EnsembleAttack(members=" valley, uniform ")
+    assert ens.active == ("uniform", "valley")  # run in the order of MEMBERS
+    for bad in ("uniform,bogus", "uniform,uniform", " , "):
+        with pytest.raises(InputError, match="ensemble members"):
+            EnsembleAttack(members=bad)

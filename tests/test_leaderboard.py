@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -12,11 +13,13 @@ from typer.testing import CliRunner
 from icpbench.cli import app
 from icpbench.core.errors import InputError
 from icpbench.harness.leaderboard import LeaderboardConfig, Variant
+from icpbench.harness.protocol import STANDARD_VERSION
 
 runner = CliRunner()
 ARGS = ["leaderboard", "--samples", "2", "--dataset", "synthetic", "--dataset-param", "n_scan=600",
         "--dataset-param", "n_map=6000", "--budgets", "0.5,1", "--ensemble-param", "queries=2",
         "--ensemble-param", "pgd_steps=1", "--ensemble-param", "sector_iterations=1",
+        "--ensemble-param", "spoof_queries=2", "--ensemble-param", "valley_queries=2",
         "--variants", "p2plane (Cauchy),p2point,kiss-icp", "--quiet"]
 
 
@@ -55,8 +58,8 @@ def test_an_added_attack_raises_the_worst_case_and_computes_only_its_own_rows(tm
     args = ["leaderboard", "--samples", "2", "--dataset", "synthetic", "--dataset-param",
             "n_scan=600", "--dataset-param", "n_map=6000", "--budgets", "0.5", "--ensemble-param",
             "queries=2", "--ensemble-param", "pgd_steps=1", "--ensemble-param",
-            "sector_iterations=1", "--variants", "p2point", "--extra-attacks", "", "--quiet",
-            "--out", str(out)]
+            "sector_iterations=1", "--ensemble-param", "members=uniform,sector-adaptive,pgd,search",
+            "--variants", "p2point", "--extra-attacks", "", "--quiet", "--out", str(out)]
     res = runner.invoke(app, args)
     assert res.exit_code == 0, res.output
     before = pd.read_csv(out / "leaderboard.csv")
@@ -103,3 +106,73 @@ def test_unknown_variant_or_target_is_refused_with_the_valid_names():
         with pytest.raises(InputError):
             LeaderboardConfig(extra_attacks=bad).resolve()
     assert Variant("a/b (c)", "p2plane").slug == "a-b-c"
+
+
+def test_a_board_is_resumed_only_under_its_own_protocol_and_never_over_a_run(tmp_path):
+    """A changed ensemble setting (or any protocol field) is refused with what differs, before
+    anything is computed; so is a board over an `icpbench run` folder or a board recorded without
+    a protocol; the same settings resume."""
+    out = tmp_path / "board"
+    args = ["leaderboard", "--samples", "1", "--dataset", "synthetic", "--dataset-param",
+            "n_scan=600", "--dataset-param", "n_map=6000", "--budgets", "0.5", "--ensemble-param",
+            "members=uniform,search", "--ensemble-param", "queries=2", "--variants", "p2point",
+            "--quiet", "--out", str(out)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["kind"] == "leaderboard" and manifest["protocol"]["name"] == "custom"
+    assert manifest["protocol"]["ensemble"] == {"members": "uniform,search", "queries": 2}
+    rows = (out / "runs" / "p2point" / "results.csv").read_text()
+    res = runner.invoke(app, [*args[:-2], "--ensemble-param", "queries=3", "--out", str(out)])
+    assert res.exit_code != 0
+    assert "another protocol" in res.output and "ensemble: stored" in res.output
+    assert (out / "runs" / "p2point" / "results.csv").read_text() == rows  # nothing computed
+    res = runner.invoke(app, args)  # the same settings resume
+    assert res.exit_code == 0, res.output
+    # a run folder is not a board's
+    run_dir = tmp_path / "run"
+    res = runner.invoke(app, ["run", "--dataset", "synthetic", "--dataset-param", "n_scan=600",
+                              "--dataset-param", "n_map=6000", "--attacks", "uniform",
+                              "--targets", "p2point", "--budgets", "0.5", "--samples", "1",
+                              "--out", str(run_dir), "--quiet"])
+    assert res.exit_code == 0, res.output
+    before = (run_dir / "manifest.json").read_text()
+    res = runner.invoke(app, [*args[:-1], str(run_dir)])
+    assert res.exit_code != 0 and "icpbench run" in res.output
+    assert (run_dir / "manifest.json").read_text() == before
+    # a board recorded before protocols existed
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "manifest.json").write_text(json.dumps({"config": {}, "variants": []}))
+    res = runner.invoke(app, [*args[:-1], str(old)])
+    assert res.exit_code != 0 and "records none" in res.output
+
+
+def test_the_standard_protocol_is_the_default_and_names_its_domains():
+    cfg = LeaderboardConfig()
+    p = cfg.protocol()
+    assert (p.name, p.version, p.domain) == ("standard", STANDARD_VERSION, "town")
+    assert p.samples == 48 and p.budgets == (1.0,) and p.ensemble == {}
+    assert cfg.extra_attacks == []  # every attack that won a scan is an ensemble member
+    unseen = LeaderboardConfig.for_domain("unseen").protocol()
+    assert unseen.domain == "unseen" and unseen.dataset_params["sensor"] == "hdl64"
+    assert LeaderboardConfig(samples=4).protocol().name == "custom"
+    with pytest.raises(InputError, match="standard domains: town, unseen"):
+        LeaderboardConfig.for_domain("mars")
+
+
+def test_a_run_resumed_after_an_attacks_default_changed_is_refused(tmp_path, monkeypatch):
+    """The command is the same but a default of the code changed (here the ensemble's search
+    patience): the stored rows were made with other settings, so the run is refused."""
+    from icpbench.attacks import ensemble
+
+    args = ["run", "--dataset", "synthetic", "--dataset-param", "n_scan=600", "--dataset-param",
+            "n_map=6000", "--attacks", "ensemble", "--attack-param", "ensemble.members=uniform",
+            "--targets", "p2point", "--budgets", "0.5", "--samples", "1", "--surrogate", "self",
+            "--out", str(tmp_path / "r"), "--quiet"]
+    assert runner.invoke(app, args).exit_code == 0
+    monkeypatch.setattr(ensemble.EnsembleAttack.__init__, "__kwdefaults__",
+                        {**ensemble.EnsembleAttack.__init__.__kwdefaults__, "patience": 3})
+    res = runner.invoke(app, args)
+    assert res.exit_code != 0
+    assert "ensemble.patience: stored 8, now 3" in res.output

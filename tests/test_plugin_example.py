@@ -58,7 +58,8 @@ def test_plugin_target_joins_the_leaderboard(plugin_path, tmp_path):
          "--variants", "p2plane (Cauchy)", "--samples", "2", "--dataset", "synthetic",
          "--dataset-param", "n_scan=600", "--dataset-param", "n_map=6000", "--budgets", "0.5",
          "--ensemble-param", "queries=2", "--ensemble-param", "pgd_steps=1",
-         "--ensemble-param", "sector_iterations=1", "--out", str(tmp_path), "--quiet"],
+         "--ensemble-param", "sector_iterations=1", "--ensemble-param", "spoof_queries=2",
+         "--ensemble-param", "valley_queries=2", "--out", str(tmp_path), "--quiet"],
         capture_output=True, text=True, env=_env(plugin_path))
     assert out.returncode == 0, out.stderr
     board = pd.read_csv(tmp_path / "leaderboard.csv")

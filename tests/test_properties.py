@@ -152,7 +152,9 @@ def attacks(tmp_path_factory):
               "generator-refine": {"checkpoint": str(ckpt), "refine_steps": 1,
                                    "refine_icp_iterations": 3},
               "sector-adaptive": {"iterations": 1}, "search": {"queries": 3, "wedges": 2},
-              "ensemble": {"pgd_steps": 1, "sector_iterations": 1, "queries": 2}}
+              "ensemble": {"pgd_steps": 1, "sector_iterations": 1, "queries": 2,
+                           "spoof_queries": 1, "valley_queries": 1},
+              "spoof": {"queries": 2}, "valley": {"queries": 1}}
     names = [n for n in registry.attacks.names() if registry.attacks.available(n)[0]]
     assert {"none", "uniform", "normal", "sector", "pgd", "generator"} <= set(names)
     return {n: build_attack(n, True, params.get(n, {})) for n in names}

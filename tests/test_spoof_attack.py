@@ -3,8 +3,8 @@
 What it shows: the displacement puts every point that can reach the map at the shifted pose
 exactly onto a map point, and moves the others by exactly lambda towards it (in the map frame of a
 rotated true pose); the attack keeps the budget, spends exactly its queries, and leads point-to-point
-ICPs (differentiable and KISS-ICP) well beyond the uniform translation; as an ensemble member it
-adds to the ensemble's row exactly its own row's worst case, and leaves the row unchanged when off.
+ICPs (differentiable and KISS-ICP) well beyond the uniform translation; the heading screen ranks a
+street's own direction first; as ensemble members spoof and valley give exactly their own rows.
 """
 
 from __future__ import annotations
@@ -16,8 +16,9 @@ import pytest
 import torch
 
 from icpbench.attacks.ensemble import MEMBERS, EnsembleAttack, column
-from icpbench.attacks.spoof import SpoofAttack, spoofed_displacement
+from icpbench.attacks.spoof import SpoofAttack, misfit, spoofed_displacement
 from icpbench.attacks.uniform import UniformTranslationAttack
+from icpbench.attacks.valley import ValleyAttack
 from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
 from icpbench.targets.kiss import KissICPTarget
@@ -65,6 +66,25 @@ def test_spoofed_points_lie_on_the_map_at_the_shifted_pose_or_move_lambda_toward
         np.testing.assert_allclose(dist[cross], shift - lam, atol=1e-9)
 
 
+def test_the_misfit_screen_ranks_the_streets_own_direction_first():
+    """Along the wall the whole wall can be put on the map at the shifted pose; across it it
+    cannot, so the misfit is smallest near the street's direction (+-x) and largest across."""
+    m = _street()
+    index = MapIndex(m)
+    p_map = m[::3]
+    lam = 1.0
+    heads = np.radians(np.arange(0.0, 360.0, 22.5))
+    bad = np.array([misfit(p_map, 2 * lam * np.array([math.cos(h), math.sin(h), 0.0]), index, lam)
+                    for h in heads])
+    assert np.argmin(bad) in (15, 0, 1, 7, 8, 9)  # within 22.5 degrees of the street (+-x)
+    assert np.argmax(bad) in (4, 12)  # across it (+-y): the wall cannot follow
+    assert bad.min() < 0.5 * np.median(bad)
+    assert misfit(p_map, np.zeros(3), index, lam) == 0.0  # every point is on the map already
+    # the sweep queries the `directions` best of the screened fan
+    assert SpoofAttack(directions=2, screen=16).screen == 16
+    assert SpoofAttack(directions=8, screen=4).screen == 0  # a screen no wider than the sweep: none
+
+
 @pytest.mark.parametrize("target", [PointToPointICP("lidar"), KissICPTarget("lidar")],
                          ids=["p2point", "kiss-icp"])
 def test_spoof_keeps_the_budget_spends_its_queries_and_beats_the_uniform_translation(
@@ -93,26 +113,25 @@ def test_spoof_rejects_bad_settings_and_needs_an_oracle(scene_pair):
         SpoofAttack().run(batch, LAM, generator=0)
 
 
-def test_the_ensembles_spoof_member_adds_exactly_its_own_worst_case(scene_pair):
+def test_the_ensembles_spoof_and_valley_members_give_their_own_rows(scene_pair):
+    """Both start from the clean scan with the seed they have alone, so the ensemble records
+    exactly their own errors, keeps the largest and spends exactly their queries."""
     batch = scene_pair
     target = PointToPointICP("lidar")
-    settings = {"pgd_steps": 0, "sector_iterations": 1, "queries": 3}
-    off = EnsembleAttack(**settings)
-    on = EnsembleAttack(**settings, spoof_queries=6)
-    assert off.settings()["members"] == [m for m in MEMBERS if m != "spoof"]
-    assert "spoof_queries" not in off.settings() and on.settings()["spoof_queries"] == 6
-    o_off, o_on, o_alone = (QueryOracle.prepared(target, batch) for _ in range(3))
-    r_off = off.run(batch, LAM, surrogate=None, generator=0, oracle=o_off)
-    r_on = on.run(batch, LAM, surrogate=None, generator=0, oracle=o_on)
-    alone = SpoofAttack(queries=6).run(batch, LAM, generator=0, oracle=o_alone)
-    assert column("spoof") not in r_off.extra
-    np.testing.assert_allclose(r_on.extra[column("spoof")].numpy(),
-                               alone.extra["spoof_err"].numpy(), rtol=1e-9)
-    e_off, e_on = o_off.errors(r_off.scans), o_on.errors(r_on.scans)
-    np.testing.assert_allclose(e_on, np.maximum(e_off, alone.extra["spoof_err"].numpy()),
-                               rtol=1e-9)
-    won = r_on.extra["winner"].numpy() == MEMBERS.index("spoof")
-    assert won.any()  # on this scene spoof beats 3 search queries
-    # its 6 queries, and the ensemble's scoring of its output
-    np.testing.assert_array_equal(r_on.extra["queries"].numpy() - r_off.extra["queries"].numpy(),
-                                  [7, 7])
+    ens = EnsembleAttack(members="uniform,spoof,valley", spoof_queries=6, valley_queries=4)
+    assert ens.settings()["members"] == ["uniform", "spoof", "valley"]
+    o_ens, o_spoof, o_valley = (QueryOracle.prepared(target, batch) for _ in range(3))
+    out = ens.run(batch, LAM, surrogate=None, generator=0, oracle=o_ens)
+    spoof = SpoofAttack(queries=6).run(batch, LAM, generator=0, oracle=o_spoof)
+    valley = ValleyAttack(queries=4).run(batch, LAM, generator=0, oracle=o_valley)
+    np.testing.assert_allclose(out.extra[column("spoof")].numpy(),
+                               spoof.extra["spoof_err"].numpy(), rtol=1e-9)
+    np.testing.assert_allclose(out.extra[column("valley")].numpy(),
+                               valley.extra["spoof_err"].numpy(), rtol=1e-9)
+    final = QueryOracle.prepared(target, batch).errors(out.scans)
+    recorded = np.stack([out.extra[column(m)].numpy() for m in ("uniform", "spoof", "valley")])
+    np.testing.assert_allclose(final, recorded.max(axis=0), rtol=1e-9)
+    winner = out.extra["winner"].numpy().astype(int)
+    assert set(winner) <= {MEMBERS.index(m) for m in ("uniform", "spoof", "valley")}
+    assert (winner != MEMBERS.index("uniform")).any()  # spoofing beats the translation here
+    np.testing.assert_array_equal(out.extra["queries"].numpy(), [1 + 6 + 4] * len(batch))

@@ -44,7 +44,8 @@ def budget_curve(rows: pd.DataFrame, search_queries: int) -> pd.DataFrame:
     if not traced:
         raise InputError("the ensemble rows hold no search trace (run it with "
                          "--attack-param ensemble.queries=N, N > 20)")
-    # the members that run before the search (an opt-in member after it is not on the curve)
+    # the members that run before the search (the search runs last); a member that did not run
+    # has no column
     fixed = [f"extra.{column(m)}" for m in MEMBERS[:MEMBERS.index("search")]]
     searched = f"extra.{column('search')}"
     out = []

@@ -39,11 +39,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from icpbench.attacks.ensemble import MEMBERS, OPT_IN, column
+from icpbench.attacks.ensemble import MEMBERS, column
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
-from icpbench.harness.results import load_results, write_json_atomic
+from icpbench.harness.protocol import (
+    STANDARD_DOMAINS,
+    Protocol,
+    custom_protocol,
+    protocol_differences,
+    standard_protocol,
+)
+from icpbench.harness.results import RESULTS_FILE, load_results, read_manifest, write_json_atomic
 from icpbench.harness.runner import SELF, RunConfig, git_commit, package_versions
 from icpbench.harness.runner import run as run_grid
 
@@ -87,14 +94,19 @@ STANDARD_VARIANTS: tuple[Variant, ...] = (
 )
 
 
-#: Attacks the standard board runs beside the ensemble (each scan's worst case is the largest):
-#: ``spoof`` leads point-to-point ICPs beyond what the ensemble's members find (docs/findings.md).
-STANDARD_EXTRA_ATTACKS: tuple[str, ...] = ("spoof",)
+#: Attacks the standard board runs beside the ensemble: none, since every attack that found a
+#: board's worst case is an ensemble member (``extra_attacks`` is for a user's own attack).
+STANDARD_EXTRA_ATTACKS: tuple[str, ...] = ()
 
 
 @dataclass
 class LeaderboardConfig:
     """What a board is computed from (recorded in its manifest).
+
+    The protocol fields (dataset, dataset_params, split, samples, budgets, seed, ensemble) default
+    to the standard protocol's ``town`` domain (:mod:`icpbench.harness.protocol`);
+    :meth:`for_domain` gives another domain's, and :meth:`protocol` says which protocol a
+    configuration is under.
 
     Attributes:
         dataset, dataset_params, split: the data (default: the simulated lidar test route).
@@ -111,11 +123,12 @@ class LeaderboardConfig:
         executor: ``local`` or ``ray`` (see ``icpbench run --executor``).
     """
 
-    dataset: str = "lidar-sim"
-    dataset_params: dict[str, Any] = field(default_factory=dict)
-    split: str = "test"
-    samples: int | None = 16
-    budgets: list[float] = field(default_factory=lambda: [0.5, 1.0, 2.0])
+    dataset: str = STANDARD_DOMAINS["town"].dataset
+    dataset_params: dict[str, Any] = field(
+        default_factory=lambda: dict(STANDARD_DOMAINS["town"].dataset_params))
+    split: str = STANDARD_DOMAINS["town"].split
+    samples: int | None = STANDARD_DOMAINS["town"].samples
+    budgets: list[float] = field(default_factory=lambda: list(STANDARD_DOMAINS["town"].budgets))
     variants: list[str] | None = None
     extra_targets: list[str] = field(default_factory=list)
     ensemble: dict[str, Any] = field(default_factory=dict)
@@ -123,6 +136,33 @@ class LeaderboardConfig:
     seed: int = 0
     batch_size: int = 4
     executor: str = "local"
+
+    @classmethod
+    def for_domain(cls, domain: str, **fields: Any) -> LeaderboardConfig:
+        """The standard protocol of ``domain`` (``town``, ``unseen``), with further ``fields``
+        (variants, executor, ...; a protocol field given here makes the protocol custom).
+
+        Raises:
+            InputError: an unknown domain.
+        """
+        p = standard_protocol(domain)
+        base = dict(dataset=p.dataset, dataset_params=dict(p.dataset_params), split=p.split,
+                    samples=p.samples, budgets=list(p.budgets), seed=p.seed,
+                    ensemble=dict(p.ensemble))
+        return cls(**{**base, **fields})
+
+    def protocol(self) -> Protocol:
+        """The standard protocol of a domain if every protocol field is that domain's, else a
+        custom protocol of these fields."""
+        mine = custom_protocol(self.dataset, self.dataset_params, self.split,
+                               -1 if self.samples is None else self.samples,
+                               tuple(sorted(self.budgets)), self.seed, self.ensemble)
+        for p in STANDARD_DOMAINS.values():
+            fields = ("dataset", "dataset_params", "split", "samples", "budgets", "seed",
+                      "ensemble")
+            if all(getattr(p, f) == getattr(mine, f) for f in fields):
+                return p
+        return mine
 
     def resolve(self) -> list[Variant]:
         """The variants of this board, checked.
@@ -172,16 +212,23 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
 
     A variant whose settings its target refuses (e.g. a kernel it does not have) is skipped and
     named in the board and its manifest. ``on_variant(variant, status)`` is called as each one
-    starts (``"running"``) or is skipped (the reason).
+    starts (``"running (k of n)"``), ends (its wall time) or is skipped (the reason); the run's own
+    progress bar shows the time left within a variant.
 
     Returns:
         The board (one row per variant and budget), also written as ``leaderboard.csv``.
     """
     out = Path(out_dir)
     variants = cfg.resolve()
+    check_board_folder(out, cfg)
+    if read_manifest(out) is None:  # claim the folder for this protocol before any row exists
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / "manifest.json", {
+            "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(), "config": asdict(cfg),
+            "finished": False, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     runs: dict[str, Path] = {}
     skipped: dict[str, str] = {}
-    for v in variants:
+    for k, v in enumerate(variants, 1):
         rc = cfg.run_config(v)
         try:
             rc.validate()
@@ -191,12 +238,53 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
                 on_variant(v, f"skipped: {exc}")
             continue
         if on_variant:
-            on_variant(v, "running")
+            on_variant(v, f"running ({k} of {len(variants)})")
+        t0 = time.perf_counter()
         run_grid(rc, out / "runs" / v.slug, progress=progress)
         runs[v.label] = out / "runs" / v.slug
+        if on_variant:
+            on_variant(v, f"done in {time.perf_counter() - t0:.0f} s")
     board = summarise(runs, cfg.budgets, cfg.extra_attacks)
     write_board(board, out, cfg, skipped)
     return board
+
+
+#: The ``kind`` a board's ``manifest.json`` records (a run folder's manifest has none).
+BOARD_KIND = "leaderboard"
+
+
+def check_board_folder(out: Path, cfg: LeaderboardConfig) -> None:
+    """Refuse an ``out`` that is not a board folder, or a board of another protocol.
+
+    A board writes only into a new folder or into a board of the same protocol (resuming it, or
+    adding variants or extra attacks to it).
+
+    Raises:
+        InputError: ``out`` is a file, a results folder of ``icpbench run`` or another folder
+            with a manifest, or a board made under a protocol that differs (the message names
+            each differing field).
+    """
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file; a board needs a folder")
+    if not out.is_dir():
+        return
+    old = read_manifest(out)
+    is_board = old is not None and (old.get("kind") == BOARD_KIND or "variants" in old)
+    if not is_board and ((out / RESULTS_FILE).exists()
+                         or "targets" in ((old or {}).get("config") or {})):
+        raise InputError(f"--out {out} holds the results of an `icpbench run` (its "
+                         "manifest.json); a board writes only into a new folder or a board of "
+                         "its own")
+    if old is None:
+        return
+    if not is_board:
+        raise InputError(f"--out {out} holds the manifest of something else than a board "
+                         f"({out / 'manifest.json'}); a board writes only into a new folder or a "
+                         "board of its own")
+    diff = protocol_differences(old.get("protocol"), cfg.protocol().as_dict())
+    if diff:
+        raise InputError(f"--out {out} is a board of another protocol ({'; '.join(diff)}); "
+                         "use a new --out, or the same settings to resume it")
 
 
 def summarise(runs: dict[str, Path], budgets: Sequence[float],
@@ -263,7 +351,7 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
             for i, m in enumerate(MEMBERS):
                 row[f"won_{m}"] = int((win == i).sum())
                 ran = e.get(f"extra.{column(m)}")
-                row[f"ran_{m}"] = m not in OPT_IN or (ran is not None and bool(ran.notna().any()))
+                row[f"ran_{m}"] = ran is not None and bool(ran.notna().any())
             for a in extra_attacks:
                 row[f"won_extra_{a}"] = int(won_extra[a].sum())
                 row[f"over_budget_{a}"] = over[a]
@@ -283,7 +371,7 @@ def _fmt(x: float, nd: int = 2) -> str:
 
 
 def ran_members(board: pd.DataFrame) -> list[str]:
-    """The ensemble members the board's rows ran (the opt-in ones only where some row has them)."""
+    """The ensemble members the board's rows ran (on some scan of some row)."""
     return [m for m in MEMBERS if f"ran_{m}" not in board or board[f"ran_{m}"].any()]
 
 
@@ -391,6 +479,7 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
     (out / "leaderboard.md").write_text(board_markdown(board, cfg, skipped))
     board_figure(board, out / "leaderboard.png")
     write_json_atomic(out / "manifest.json", {
+        "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
-        "skipped": skipped, "versions": package_versions(), "git": git_commit(),
+        "skipped": skipped, "versions": package_versions(), "git": git_commit(), "finished": True,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})

@@ -27,6 +27,7 @@ import pandas as pd
 from tabulate import tabulate
 
 from icpbench.core.errors import InputError
+from icpbench.harness.worst_case import WORST, WORST_DISPLAY, winner_note, worst_rows
 
 Format = Literal["md", "latex", "csv"]
 #: Which runs a figure covers: "converged" (the paper's rule) or "all" (every finite error).
@@ -39,6 +40,7 @@ DISPLAY = {"none": "Original", "uniform": "Uniform", "normal": "Normal",
            "pgd": "PGD (oracle)", "generator": "Ours",
            "generator-refine": "Ours + 3 steps"}
 ORDER = ["none", "uniform", "normal", "sector", "sector-iter", "pgd"]
+DISPLAY[WORST] = WORST_DISPLAY
 
 #: Datasets whose coordinates are normalised (each object scaled to the unit sphere), not metres.
 NORMALISED_DATASETS = frozenset({"objects", "meshes"})
@@ -51,11 +53,12 @@ MIN_RUNS_FOR_STD = 2
 
 
 def attack_order(attacks: list[str], reference: str | None) -> list[str]:
-    """Paper order: Original, Uniform, Normal, others (alphabetical), ..., reference last."""
+    """Paper order: Original, Uniform, Normal, others (alphabetical), ..., reference, then the
+    worst of all attacks (:mod:`icpbench.harness.worst_case`) last."""
     known = [a for a in ORDER if a in attacks and a != reference]
-    other = sorted(a for a in attacks if a not in ORDER and a != reference)
+    other = sorted(a for a in attacks if a not in ORDER and a not in (reference, WORST))
     tail = [reference] if reference in attacks else []
-    return known + other + tail
+    return known + other + tail + ([WORST] if WORST in attacks and reference != WORST else [])
 
 
 def error_unit(metric: str = "trans_err_xy", dataset: str | None = None) -> str:
@@ -662,21 +665,28 @@ def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
            target: str | None = None, *, dataset: str | None = None) -> str:
     """Table 1 text.
 
-    md/latex: Table 1 (:func:`table1_frame`) and the lines explaining its marks; then, as tables of
+    A run of two or more attacks gets a last row, the worst of all attacks per scan
+    (:func:`~icpbench.harness.worst_case.worst_rows`), and a line naming which attack won how many
+    scans. md/latex: Table 1 (:func:`table1_frame`) and the lines explaining its marks; then, as tables of
     the same format, the counts per cell (:func:`counts_frame`), "% Ours is Larger" over all pairs
     (:func:`all_pairs_frame`), the displacement audit (:func:`displacement_frame`) and the attack
     time per scan (:func:`timing_frame`); then the load and health warnings, one per line (LaTeX:
     as comments). csv: :func:`table1_csv_frame`. ``dataset`` picks the unit (:func:`error_unit`).
     """
-    if fmt == "csv":
-        return render(table1_csv_frame(df, reference, target, dataset=dataset), fmt)
     sub = select_target(df, target)
-    cells = table1_cells(df, reference, target)
+    worst = worst_rows(sub)
+    with_worst = pd.concat([df, worst.drop(columns="winner")], ignore_index=True) \
+        if not worst.empty else df
+    if fmt == "csv":
+        return render(table1_csv_frame(with_worst, reference, target, dataset=dataset), fmt)
+    cells = table1_cells(with_worst, reference, target)
     unit = error_unit("trans_err_xy", dataset)
     main = _main_frame(cells, reference, unit, None)
     name = DISPLAY.get(reference, reference)
     text = render(main, fmt)
     notes = table1_footnotes(main, reference)
+    if not worst.empty:
+        notes.append(winner_note(worst))
     if notes and fmt == "latex":
         text += "\n\n" + "\n\n".join(_latex_text(n) for n in notes)  # one paragraph each
     elif notes:

@@ -18,6 +18,7 @@ process writes them, so the results file is the same whatever the executor.
 from __future__ import annotations
 
 import copy
+import json
 import math
 import platform
 import subprocess
@@ -255,6 +256,23 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     return out
 
 
+def settings_differences(stored: Mapping[str, Any] | None, now: Mapping[str, Any]) -> list[str]:
+    """The settings (``attack.key: stored X, now Y``) of attacks recorded in both ``stored`` and
+    ``now`` (attack name -> its resolved ``settings()``, defaults included) that differ: rows of
+    one attack made with two settings must not mix, even when the command line is the same and
+    only a default of the code changed."""
+    out: list[str] = []
+    for name, new in (now or {}).items():
+        old = (stored or {}).get(name)
+        if old is None:
+            continue
+        new = json.loads(json.dumps(new, sort_keys=True, default=str))  # as a manifest stores it
+        for k in sorted(set(old) | set(new)):
+            if old.get(k) != new.get(k):
+                out.append(f"{name}.{k}: stored {old.get(k)!r}, now {new.get(k)!r}")
+    return out
+
+
 def package_versions() -> dict[str, str]:
     """Versions of icpbench and the libraries that shape its numbers."""
     out = {"python": platform.python_version()}
@@ -450,6 +468,12 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                 raise InputError(
                     f"{out_dir} holds results made with other files for attack(s) "
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
+            diff = settings_differences(old.get("attacks"),
+                                        {n: a.settings() for n, a in worker.attacks.items()})
+            if diff:
+                raise InputError(
+                    f"{out_dir} holds results of attacks with other settings ({'; '.join(diff)}), "
+                    "e.g. made before a default changed; use a new --out")
         store = ResultsStore(out_dir)
         manifest.update(merge_provenance(old, manifest, count_rows(out_dir)))
         manifest["finished"] = False
