@@ -391,6 +391,9 @@ def leaderboard(
     out: Annotated[str | None, typer.Option(
         help="Board folder (re-run to resume). [default: results/leaderboard, "
              "results/leaderboard-unseen for the unseen domain]")] = None,
+    compare_with: Annotated[str | None, typer.Option(
+        help="Another board's folder (e.g. the other domain's): state the agreement of the two "
+             "rankings (Kendall's tau) on this board.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Rank ICP variants by the worst case the attack ensemble finds against each (adaptive:
@@ -438,7 +441,11 @@ def leaderboard(
             if not quiet:
                 typer.echo(f"[{v.label}] {status}", err=True)
 
-        board = run_leaderboard(cfg, out_dir, progress=not quiet, on_variant=note)
+        if compare_with is not None and not (Path(compare_with) / "leaderboard.csv").is_file():
+            raise typer.BadParameter(f"--compare-with {compare_with}: no board there (no "
+                                     "leaderboard.csv)")
+        board = run_leaderboard(cfg, out_dir, progress=not quiet, on_variant=note,
+                                compare_with=compare_with)
         typer.echo((out_dir / "leaderboard.md").read_text())
         typer.echo(f"{n} variant(s), {len(board)} rows: {out_dir}/leaderboard.md, .csv, .png")
     except KeyboardInterrupt:

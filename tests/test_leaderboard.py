@@ -39,7 +39,7 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     assert list(mid.amplification) == sorted(mid.amplification)
     # the Markdown lists the variants in that order; every scan's winner is counted
     md = (out / "leaderboard.md").read_text()
-    ranked = re.findall(r"^\| (\d+) \| ([^|]+) \|", md, flags=re.M)
+    ranked = re.findall(r"^\| (\d+) \| [^|]+ \| ([^|]+) \|", md, flags=re.M)
     assert [v.strip() for _, v in ranked] == list(mid.variant)
     won = board[[c for c in board if c.startswith("won_")]].sum(axis=1)
     assert (won == board.scans).all()
@@ -51,6 +51,16 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     assert res.exit_code == 0, res.output
     pd.testing.assert_frame_equal(pd.read_csv(out / "leaderboard.csv"), board)
     assert (out / "runs" / "p2point" / "results.csv").stat().st_mtime_ns == mtime
+    # bootstrap intervals of the mean and the rank; a board agrees with itself (tau = 1)
+    assert (board.worst_lo <= board.worst_mean + 1e-9).all()
+    assert (board.worst_mean <= board.worst_hi + 1e-9).all()
+    assert ((1 <= board.rank_lo) & (board.rank_hi <= 3)).all()
+    assert "rank 95% CI" in md and "95% CI [m]" in md
+    res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "Kendall's tau = 1.00 over 3 variants" in (out / "leaderboard.md").read_text()
+    res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(tmp_path)])
+    assert res.exit_code != 0 and "no board there" in res.output
 
 
 def test_an_added_attack_raises_the_worst_case_and_computes_only_its_own_rows(tmp_path):

@@ -43,6 +43,7 @@ from icpbench.attacks.ensemble import MEMBERS, column
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
+from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement
 from icpbench.harness.protocol import (
     STANDARD_DOMAINS,
     Protocol,
@@ -207,7 +208,8 @@ class LeaderboardConfig:
 
 
 def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bool = True,
-                    on_variant: Callable[[Variant, str], None] | None = None) -> pd.DataFrame:
+                    on_variant: Callable[[Variant, str], None] | None = None,
+                    compare_with: str | Path | None = None) -> pd.DataFrame:
     """Compute (or resume) every variant's run under ``out_dir/runs`` and write the board.
 
     A variant whose settings its target refuses (e.g. a kernel it does not have) is skipped and
@@ -245,7 +247,7 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
         if on_variant:
             on_variant(v, f"done in {time.perf_counter() - t0:.0f} s")
     board = summarise(runs, cfg.budgets, cfg.extra_attacks)
-    write_board(board, out, cfg, skipped)
+    write_board(board, out, cfg, skipped, compare_with=compare_with)
     return board
 
 
@@ -296,6 +298,7 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
     ``frac_over_budget`` > 0, is not counted and is reported as ``over_budget_<attack>``). With
     extra attacks the ensemble's own mean is kept as ``ensemble_mean``."""
     rows = []
+    per_scan: dict[float, dict[str, pd.Series]] = {}  # budget -> variant -> worst case per scan
     for label, path in runs.items():
         df = load_results(path)
         clean = df[df.attack == "none"]
@@ -322,6 +325,8 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
                 won_extra[a] = better
                 over[a] = int(bad.sum())
             ok = np.isfinite(err)
+            per_scan.setdefault(float(lam), {})[label] = pd.Series(
+                np.where(ok, err, np.nan), index=e.sample_id.to_numpy())
             amp = err / lam
             uni = e.get(f"extra.{column('uniform')}", pd.Series(np.nan, index=e.index))
             win = e.get("extra.winner", pd.Series(np.nan, index=e.index))[from_ensemble]
@@ -359,11 +364,31 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
     board = pd.DataFrame(rows)
     if board.empty:
         raise InputError("no variant produced ensemble rows: nothing to rank")
+    board = board.join(_intervals(per_scan), on=["budget", "variant"])
     mid = sorted(budgets)[len(budgets) // 2]
     rank = board[np.isclose(board.budget, mid)].set_index("variant").amplification
     board["rank_key"] = board.variant.map(rank).fillna(np.inf)
     return board.sort_values(["rank_key", "variant", "budget"]).drop(columns="rank_key") \
         .reset_index(drop=True)
+
+
+def _intervals(per_scan: dict[float, dict[str, pd.Series]]) -> pd.DataFrame:
+    """Bootstrap 95 % intervals over the scans (:func:`~icpbench.analysis.board_stats.
+    bootstrap_ranks`, one paired resample for all variants) of each variant's mean worst case
+    (``worst_lo``, ``worst_hi``) and rank (``rank``, ``rank_lo``, ``rank_hi``; 1 = most robust),
+    indexed by (budget, variant)."""
+    parts = []
+    for lam, series in per_scan.items():
+        errors = pd.DataFrame(series)  # scans x variants, aligned by sample id
+        ci = bootstrap_ranks(errors).rename(columns={"mean_lo": "worst_lo", "mean_hi": "worst_hi"})
+        parts.append(ci.drop(columns="mean").assign(budget=lam).rename_axis("variant"))
+    return pd.concat(parts).reset_index().set_index(["budget", "variant"])
+
+
+def _rank_range(lo: float, hi: float) -> str:
+    """A rank interval as text: ``3`` or ``2-5`` (bounds rounded to whole ranks)."""
+    a, b = int(math.floor(lo)), int(math.ceil(hi))
+    return str(a) if a == b else f"{a}-{b}"
 
 
 def _fmt(x: float, nd: int = 2) -> str:
@@ -395,23 +420,31 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
         f"{budgets[len(budgets) // 2]:g} m, most robust first.",
         "",
     ]
-    head = ["#", "variant", "clean mean [m]"]
+    mid = budgets[len(budgets) // 2]
+    head = ["#", f"rank 95% CI (λ={mid:g})", "variant", "clean mean [m]"]
     for lam in budgets:
-        head += [f"λ={lam:g}: mean [m]", "median [m]", "ampl.", "held", "× uniform"]
+        head += [f"λ={lam:g}: mean [m]", "95% CI [m]", "median [m]", "ampl.", "held",
+                 "× uniform"]
         head += ["ensemble [m]"] if extras else []
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k, v in enumerate(order, 1):
         r = board[board.variant == v].set_index("budget")
-        cells = [str(k), v, _fmt(r.clean_mean.iloc[0], 3)]
+        rk = r.loc[mid] if mid in r.index else None
+        cells = [str(k), "-" if rk is None else _rank_range(rk.rank_lo, rk.rank_hi), v,
+                 _fmt(r.clean_mean.iloc[0], 3)]
         for lam in budgets:
             if lam not in r.index:
-                cells += ["-"] * (6 if extras else 5)
+                cells += ["-"] * (7 if extras else 6)
                 continue
             x = r.loc[lam]
-            cells += [_fmt(x.worst_mean), _fmt(x.worst_median), _fmt(x.amplification),
+            cells += [_fmt(x.worst_mean), f"{_fmt(x.worst_lo)}-{_fmt(x.worst_hi)}",
+                      _fmt(x.worst_median), _fmt(x.amplification),
                       f"{100 * x.held_share:.0f}%", _fmt(x.over_uniform, 1)]
             cells += [_fmt(x.ensemble_mean)] if extras else []
         lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "Intervals: bootstrap over the scans (1000 resamples, the same for every "
+              "variant), 2.5-97.5 %; rank 1 is the most robust. Variants whose rank intervals "
+              "overlap are not told apart by these scans."]
     lines += ["", "Attack cost per scan (seconds, queries) and the member that found each scan's "
               "worst case (counts over all budgets):", ""]
     head = ["variant", *[f"λ={lam:g}: s / queries" for lam in budgets], *members,
@@ -469,14 +502,43 @@ def board_figure(board: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
+def agreement_line(board: pd.DataFrame, other: Path) -> str:
+    """One line: Kendall's tau between this board's ranking and the board in folder ``other``
+    (mean amplification at each board's middle budget, over the variants both rank).
+
+    Raises:
+        InputError: ``other`` holds no board (``leaderboard.csv``).
+    """
+    path = other / "leaderboard.csv"
+    if not path.is_file():
+        raise InputError(f"--compare-with {other}: no board there ({path} does not exist)")
+    theirs = pd.read_csv(path)
+    manifest = read_manifest(other) or {}
+    domain = (manifest.get("protocol") or {}).get("domain", "unknown")
+
+    def scores(b: pd.DataFrame) -> dict[str, float]:
+        budgets = sorted(b.budget.unique())
+        mid = budgets[len(budgets) // 2]
+        return b[np.isclose(b.budget, mid)].set_index("variant").amplification.to_dict()
+
+    tau, p, n = kendall_agreement(scores(board), scores(theirs))
+    return (f"Agreement with the ranking of `{other}` (domain `{domain}`): Kendall's tau = "
+            f"{_fmt(tau)} over {n} variants (two-sided p = {_fmt(p, 3)}; 1 is the same order).")
+
+
 def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
-                skipped: dict[str, str]) -> None:
-    """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` into ``out``."""
+                skipped: dict[str, str], compare_with: str | Path | None = None) -> None:
+    """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` into ``out``; with
+    ``compare_with`` (another board's folder), the Markdown states the agreement of the two
+    rankings (:func:`agreement_line`)."""
     out.mkdir(parents=True, exist_ok=True)
     unused = [f"won_{m}" for m in MEMBERS if m not in ran_members(board)]
     board.drop(columns=unused + [c for c in board if c.startswith("ran_")]).to_csv(
         out / "leaderboard.csv", index=False, float_format="%.6g")
-    (out / "leaderboard.md").write_text(board_markdown(board, cfg, skipped))
+    md = board_markdown(board, cfg, skipped)
+    if compare_with is not None:
+        md += "\n" + agreement_line(board, Path(compare_with)) + "\n"
+    (out / "leaderboard.md").write_text(md)
     board_figure(board, out / "leaderboard.png")
     write_json_atomic(out / "manifest.json", {
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),

@@ -1,0 +1,83 @@
+"""How sure a leaderboard is: bootstrap intervals of each variant's mean worst case and rank, and
+the agreement of two boards' rankings.
+
+A board's mean over 48 scans is an estimate; a reader needs to know which differences between
+variants the scans support. The scans are resampled with replacement, *the same resample for
+every variant* (the variants are measured on the same scans, so their errors are paired), ``n_boot``
+times from one seeded generator; each resample gives every variant a mean and a rank, and the 2.5 /
+97.5 % percentiles over the resamples are the intervals (Efron and Tibshirani, "An Introduction to
+the Bootstrap", 1993, ch. 13; rank intervals as in Hall and Miller, "Using the bootstrap to
+quantify the authority of an empirical ranking", Ann. Statist. 2009). Rank 1 is the most robust
+(smallest mean worst case). Two boards (e.g. two data domains) agree as much as Kendall's tau of
+their rankings over the variants both hold says (Kendall, "A new measure of rank correlation",
+Biometrika 1938).
+
+Units: errors in metres.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from icpbench.core.errors import InputError
+
+#: Resamples of the bootstrap (default).
+N_BOOT = 1000
+
+
+def bootstrap_ranks(errors: pd.DataFrame, n_boot: int = N_BOOT, seed: int = 0) -> pd.DataFrame:
+    """Means and ranks of the variants with their bootstrap 95 % percentile intervals.
+
+    Args:
+        errors: scans x variants worst-case errors (metres); NaN where a scan has no finite error
+            for a variant (diverged), which its mean leaves out.
+        n_boot: resamples of the scans.
+        seed: seed of the resampling.
+
+    Returns:
+        One row per variant (index: the columns of ``errors``): ``mean``, ``mean_lo``,
+        ``mean_hi``, ``rank`` (on all scans; ties share the average rank), ``rank_lo``,
+        ``rank_hi``.
+
+    Raises:
+        InputError: no scan or no variant, or ``n_boot`` < 1.
+    """
+    if errors.empty or errors.shape[1] == 0:
+        raise InputError("bootstrap of a board: no scans or no variants")
+    if int(n_boot) < 1:
+        raise InputError(f"bootstrap of a board: n_boot must be >= 1, got {n_boot}")
+    X = errors.to_numpy(dtype=float)
+    S = X.shape[0]
+    idx = np.random.default_rng(seed).integers(0, S, size=(int(n_boot), S))
+    with warnings.catch_warnings():  # a variant with no finite scan has a NaN mean
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        means = np.nanmean(X[idx], axis=1)  # (n_boot, V)
+        full = np.nanmean(X, axis=0)
+    ranks = stats.rankdata(np.where(np.isfinite(means), means, np.inf), axis=1)
+    rank_full = stats.rankdata(np.where(np.isfinite(full), full, np.inf))
+    with warnings.catch_warnings():  # an all-NaN column has NaN percentiles
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        lo, hi = np.nanpercentile(means, [2.5, 97.5], axis=0)
+    rlo, rhi = np.percentile(ranks, [2.5, 97.5], axis=0)
+    return pd.DataFrame({"mean": full, "mean_lo": lo, "mean_hi": hi, "rank": rank_full,
+                         "rank_lo": rlo, "rank_hi": rhi}, index=errors.columns)
+
+
+def kendall_agreement(a: Mapping[str, float], b: Mapping[str, float]) -> tuple[float, float, int]:
+    """Kendall's tau-b of two rankings given as variant -> score (e.g. the mean amplification of
+    two boards), over the variants both hold with a finite score.
+
+    Returns:
+        ``(tau, p_value, n)``: tau in [-1, 1] (1: the same order), the two-sided p-value of no
+        association, and the number of variants compared (tau and p are NaN below 2).
+    """
+    common = [v for v in a if v in b and np.isfinite(a[v]) and np.isfinite(b[v])]
+    if len(common) < 2:
+        return float("nan"), float("nan"), len(common)
+    res = stats.kendalltau([a[v] for v in common], [b[v] for v in common])
+    return float(res.statistic), float(res.pvalue), len(common)
