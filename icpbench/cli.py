@@ -77,6 +77,21 @@ def _floats(text: str, what: str) -> list[float]:
         raise typer.BadParameter(f"{what} must be comma-separated numbers, got {text!r}") from None
 
 
+def _budgets(text: str, flag: str = "--budgets") -> list[float]:
+    """Comma-separated budgets, checked by the rule of every run
+    (:func:`icpbench.harness.settings.check_budgets`: sensible, distinct in the tables)."""
+    from icpbench.core.errors import InputError
+    from icpbench.harness.settings import check_budgets
+
+    values = _floats(text, flag)
+    if not values:
+        raise typer.BadParameter(f"{flag} has no numbers: {text!r}")
+    try:
+        return check_budgets(values)
+    except InputError as exc:
+        raise InputError(f"{flag}: {exc}") from None
+
+
 def _kv(item: str, flag: str) -> tuple[str, object]:
     """``KEY=VALUE`` with the value read as YAML (numbers, true/false, lists); a value with a
     leading zero (a KITTI sequence ``00``) stays text; an empty value is refused."""
@@ -422,9 +437,7 @@ def leaderboard(
         if samples is not None:
             cfg.samples = samples
         if budgets is not None:
-            cfg.budgets = _floats(budgets, "--budgets")
-            if not cfg.budgets:
-                raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
+            cfg.budgets = _budgets(budgets)
         if variants is not None:
             labels = [v.strip() for v in variants.split(",") if v.strip()]
             known = {v.label for v in STANDARD_VARIANTS}
@@ -720,9 +733,7 @@ def train(
         if generator_param:
             over["generator_overrides"] = _flat(generator_param, "--generator-param")
         if budgets is not None:
-            over["budgets"] = _floats(budgets, "--budgets")
-            if not over["budgets"]:
-                raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
+            over["budgets"] = _budgets(budgets)
         if dataset_param:
             over["dataset_params"] = _flat(dataset_param, "--dataset-param")
         card = run_training(train_config(preset, **over), out_dir, progress=not quiet,

@@ -58,7 +58,8 @@ class ValidationSettings:
         dataset, split, samples, dataset_params: the places: the first ``samples`` scans of the
             split (a seeded shuffle of the route for ``lidar-sim``; None = all).
         attacks: attacks whose error at ``budget_m`` is a worst-case estimate (a setting, so that a
-            new attack can be added and the grid resumed).
+            new attack can be added and the grid resumed); at least one, each once, never
+            ``none`` (the clean error, computed for every place anyway).
         budget_m: lambda of the attacks and of the sector estimate, metres.
         corruptions: corruption names (``["all"]``: every one that loads).
         severities: corruption levels 1..5.
@@ -92,12 +93,19 @@ class ValidationSettings:
 
         if not self.attacks:
             raise InputError("no attacks given; the worst case needs at least one")
+        if "none" in self.attacks:  # its rows are the clean error, not a worst case
+            raise InputError("attack 'none' is the clean reference every validation computes "
+                             "(clean_err), not a worst case; give attacks that search for one "
+                             "(e.g. sector-iter, generator)")
+        for i, a in enumerate(self.attacks):
+            if a in self.attacks[:i]:
+                raise InputError(f"attack {a!r} is given twice")
         if self.headline_severity not in self.severities:
             raise InputError(f"headline severity {self.headline_severity} is not among the "
                              f"severities {self.severities}")
         if not (self.fail_m > 0 and np.isfinite(self.fail_m)):
             raise InputError(f"fail_m must be a positive number of metres, got {self.fail_m}")
-        attacks = ["none", *[a for a in self.attacks if a != "none"]]
+        attacks = ["none", *self.attacks]
         return RunConfig(dataset=self.dataset, split=self.split, samples=self.samples,
                          dataset_params=dict(self.dataset_params), attacks=attacks,
                          targets=[TARGET], budgets=[float(self.budget_m)], seeds=[self.seed],

@@ -18,6 +18,7 @@ settings the class declares (:func:`check_params`) before anything is built.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 import math
@@ -262,17 +263,33 @@ class Range:
         return " and ".join(x for x in (lo, hi) if x) or "finite"
 
 
+def _numbers_in(v: Any, path: str = "") -> typing.Iterator[tuple[str, float]]:
+    """``(path, number)`` of every number in ``v``, in lists and mappings at any depth
+    (``[1]``, ``.mount_height_m``)."""
+    if isinstance(v, bool):
+        return
+    if isinstance(v, int | float):
+        yield path, v
+    elif isinstance(v, list | tuple):
+        for i, x in enumerate(v):
+            yield from _numbers_in(x, f"{path}[{i}]")
+    elif isinstance(v, Mapping):
+        for k, x in v.items():
+            yield from _numbers_in(x, f"{path}.{k}")
+
+
 def _check_number(owner: str, key: str, v: Any, rng: Range | None) -> None:
-    """Every number a plugin setting holds must be finite, and inside ``rng`` where declared."""
-    nums = v if isinstance(v, list | tuple) else [v]
-    for x in nums:
-        if isinstance(x, bool) or not isinstance(x, int | float):
-            continue
+    """Every number a plugin setting holds must be finite (also inside lists and mappings; the
+    message names its path, ``lidar.mount_height_m``), and inside ``rng`` where declared (the
+    setting itself or the items of a list setting)."""
+    for path, x in _numbers_in(v):
+        where = key + path
         if not math.isfinite(x):
-            raise InputError(f"setting {key!r} of {owner} must be a finite number"
+            raise InputError(f"setting {where!r} of {owner} must be a finite number"
                              f"{'' if rng is None else f' ({rng})'}, got {x!r}")
-        if rng is not None and not rng.contains(x):
-            raise InputError(f"setting {key!r} of {owner} must be {rng}, got {x!r}")
+        nested = "." in path or path.count("[") > 1
+        if rng is not None and not nested and not rng.contains(x):
+            raise InputError(f"setting {where!r} of {owner} must be {rng}, got {x!r}")
 
 
 def check_ranges(owner: str, values: Mapping[str, Any], ranges: Mapping[str, Range]) -> None:
@@ -310,11 +327,84 @@ def check_params(owner: str, types_: Mapping[str, Any], params: Mapping[str, Any
     for k, v in params.items():
         try:
             out[k] = coerce(v, types_[k])
+        except NestedSettingError as exc:
+            raise InputError(f"setting '{k}{exc.path}' of {owner} {exc.message}") from exc
         except (TypeError, ValueError) as exc:
             raise InputError(f"setting {k!r} of {owner} must be {describe_type(types_[k])}, "
                              f"got {v!r}") from exc
         _check_number(owner, k, out[k], (ranges or {}).get(k))
     return out
+
+
+class NestedSettingError(ValueError):
+    """A value inside a setting (an item of a list, a field of a mapping) that does not fit.
+
+    Attributes:
+        path: where it is, below the setting (``.mount_height_m``, ``[1]``, ``.vfov_deg[0]``).
+        message: what is wrong (``must be a number, got 'abc'``, ``is unknown; valid: ...``).
+    """
+
+    def __init__(self, path: str, message: str) -> None:
+        super().__init__(f"{path} {message}")
+        self.path, self.message = path, message
+
+    def under(self, step: str) -> NestedSettingError:
+        """The same error seen one level up (``step`` is ``.key`` or ``[i]``)."""
+        return NestedSettingError(step + self.path, self.message)
+
+
+def _coerce_item(value: Any, hint: Any, step: str) -> Any:
+    """``value`` (an item of a list or a field of a mapping, at ``step``) checked against
+    ``hint``. It is returned as given, except a text that the hint turns into a number or a
+    flag: only checked, a nested value keeps its type (an integer stays an integer), so that
+    settings recorded before this check existed compare equal.
+
+    Raises:
+        NestedSettingError: the value does not fit; the path starts with ``step``.
+    """
+    try:
+        got = coerce(value, hint)
+    except NestedSettingError as exc:
+        raise exc.under(step) from None
+    except (TypeError, ValueError):
+        raise NestedSettingError(step, f"must be {describe_type(hint)}, got {value!r}") from None
+    return got if isinstance(value, str) else value
+
+
+def _coerce_items(value: Any, hint: Any) -> list[Any] | tuple[Any, ...]:
+    """A list setting whose hint names its items (``list[float]``, ``tuple[float, float]``,
+    ``Sequence[int]``), each item checked (:func:`_coerce_item`); ValueError for a value that is
+    not a list or, for a fixed-length tuple, has another length."""
+    if not isinstance(value, list | tuple):
+        raise ValueError("not a list")
+    args = typing.get_args(hint)
+    if not args:
+        return value
+    if len(args) == 2 and args[1] is Ellipsis or len(args) == 1:
+        item_hints = [args[0]] * len(value)
+    else:
+        if len(value) != len(args):
+            raise ValueError(f"needs {len(args)} values")
+        item_hints = list(args)
+    return type(value)(_coerce_item(x, h, f"[{i}]") for i, (x, h) in
+                       enumerate(zip(value, item_hints, strict=True)))
+
+
+def _coerce_fields(value: Any, hint: type) -> dict[str, Any]:
+    """A mapping setting that overrides fields of the dataclass ``hint`` (lidar-sim's ``lidar``,
+    a :class:`~icpbench.datasets.lidar_model.LidarConfig`): every key must be a field, every value
+    fit the field's type hint (:func:`_coerce_item`). Fields left out keep the plugin's values."""
+    if not isinstance(value, Mapping):
+        raise ValueError("not a mapping")
+    try:
+        hints = typing.get_type_hints(hint)
+    except Exception:  # a hint naming something only imported for type checking
+        hints = {}
+    names = [f.name for f in dataclasses.fields(hint) if f.init]
+    for k in value:
+        if k not in names:
+            raise NestedSettingError(f".{k}", f"is unknown; valid: {', '.join(names)}")
+    return {k: _coerce_item(v, hints.get(k, Any), f".{k}") for k, v in value.items()}
 
 
 _TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
@@ -332,17 +422,27 @@ def coerce(value: Any, hint: Any) -> Any:
             if type(None) in args:
                 return None
             raise ValueError("None is not allowed")
+        fields_of = [a for a in args if _is_dataclass_type(a)]
+        if isinstance(value, Mapping) and fields_of:  # a mapping of (some of) its fields
+            return _coerce_fields(value, fields_of[0])
         for a in args:  # an exact match first (``str | list[float]`` keeps a string a string)
             if a is not type(None) and _is_exactly(value, a):
                 return value
+        inner: NestedSettingError | None = None
         for a in args:
             if a is type(None):
                 continue
             try:
                 return coerce(value, a)
+            except NestedSettingError as exc:  # the right kind of value, a bad item inside
+                inner = inner or exc
             except (TypeError, ValueError):
                 continue
+        if inner is not None:
+            raise inner
         raise ValueError(f"{value!r} fits none of the types")
+    if _is_dataclass_type(hint):
+        return value if isinstance(value, hint) else _coerce_fields(value, hint)
     if origin is Literal:
         if value in typing.get_args(hint):
             return value
@@ -384,13 +484,15 @@ def coerce(value: Any, hint: Any) -> Any:
             return value
         raise ValueError("not a path")
     if origin in (list, tuple) or getattr(origin, "__name__", "") == "Sequence":
-        if isinstance(value, list | tuple):
-            return value
-        raise ValueError("not a list")
-    if origin is dict:
+        return _coerce_items(value, hint)
+    if origin is dict or hint is dict:
         if isinstance(value, dict):
             return value
         raise ValueError("not a mapping")
+    if hint in (list, tuple):
+        if isinstance(value, list | tuple):
+            return value
+        raise ValueError("not a list")
     return value
 
 
@@ -402,9 +504,15 @@ def _is_exactly(value: Any, hint: Any) -> bool:
     origin = typing.get_origin(hint)
     if origin is Literal:
         return value in typing.get_args(hint)
-    if origin in (list, tuple, dict):
+    if origin is dict:
         return isinstance(value, origin)
+    if origin is not None:  # a list of typed items: its items are checked by coerce
+        return False
     return isinstance(hint, type) and isinstance(value, hint)
+
+
+def _is_dataclass_type(hint: Any) -> bool:
+    return isinstance(hint, type) and dataclasses.is_dataclass(hint)
 
 
 def describe_type(hint: Any) -> str:
@@ -419,7 +527,17 @@ def describe_type(hint: Any) -> str:
     if origin is Literal:
         return "one of " + ", ".join(map(repr, typing.get_args(hint)))
     if origin in (list, tuple) or getattr(origin, "__name__", "") == "Sequence":
-        return "a list"
+        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        plural = {int: "integers", float: "numbers", bool: "flags (true or false)", str: "texts",
+                  Path: "paths"}
+        if not args or any(a not in plural for a in args) or len(set(args)) > 1:
+            return "a list"
+        fixed = origin is tuple and Ellipsis not in typing.get_args(hint) and len(args) > 1
+        return f"a list of {len(args)} {plural[args[0]]}" if fixed else f"a list of {plural[args[0]]}"
+    if _is_dataclass_type(hint):
+        return f"a mapping of {hint.__name__} fields"
+    if hint is dict or origin is dict:
+        return "a mapping"
     return getattr(hint, "__name__", str(hint))
 
 

@@ -104,11 +104,11 @@ def check_corruptions(cfg: RunConfig) -> None:
     """Resolve and check ``cfg.corruptions`` and ``cfg.severities`` in place.
 
     ``corruptions``: ``[]`` (none), ``["all"]`` (every corruption that loads) or names.
-    ``severities``: integers 1..5 (duplicates dropped, sorted).
+    ``severities``: integers 1..5, each once (checked by ``RunConfig.validate``), sorted here.
 
     Raises:
-        InputError: an unknown corruption, a bad severity, a corruption named like an attack of the
-            run, or corruptions on a dataset without a sensor.
+        InputError: an unknown corruption, a corruption named like an attack of the run, or
+            corruptions on a dataset without a sensor.
     """
     if not cfg.corruptions:
         cfg.corruptions = []
@@ -121,13 +121,9 @@ def check_corruptions(cfg: RunConfig) -> None:
     if cfg.dataset in NO_SENSOR_DATASETS:
         raise InputError(f"corruptions model a lidar sensor; dataset {cfg.dataset!r} has none "
                          "(use a lidar dataset: lidar-sim, kitti, boreas)")
-    sev = cfg.severities
-    if isinstance(sev, int | str) or not sev:
-        raise InputError(f"severities must be a non-empty list of integers 1..5, got {sev!r}")
-    for s in sev:
-        if isinstance(s, bool) or not isinstance(s, int | np.integer) or int(s) not in SEVERITIES:
-            raise InputError(f"severities must be integers 1..5, got {s!r}")
-    cfg.severities = sorted({int(s) for s in sev})
+    # each level is an integer 1..5, given once: checked with every list field of the run
+    # (icpbench.harness.settings.LIST_FIELDS), before this is called
+    cfg.severities = sorted(int(s) for s in cfg.severities)
 
 
 def build_corruption_attacks(cfg: RunConfig) -> dict[str, Attack]:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput, validate_budget
+from icpbench.attacks.base import STAT_COLUMNS, Attack, AttackOutput
 from icpbench.core import registry
 from icpbench.core.errors import CheckpointError, InputError
 from icpbench.core.se3 import POSE_ERROR_COLUMNS, pose_error_components
@@ -55,7 +55,14 @@ from icpbench.harness.results import (
     read_manifest,
     write_json_atomic,
 )
-from icpbench.harness.settings import SEED_MAX, SEED_MIN, check_run_fields, seed_ok
+from icpbench.harness.settings import (
+    LIST_FIELDS,
+    SEED_MAX,
+    check_list_field,
+    check_run_fields,
+    config_file,
+    seed_ok,
+)
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.self_surrogate import self_surrogate
@@ -124,6 +131,8 @@ class RunConfig:
     def validate(self) -> RunConfig:
         """Check names, budgets, sizes and every plugin setting; resolve ``all`` and the default
         budgets. Raises InputError naming the setting and listing valid choices."""
+        for key in LIST_FIELDS:  # one rule for every list field, whoever set it
+            setattr(self, key, check_list_field(key, getattr(self, key)))
         ds_cls = registry.datasets.get(self.dataset)
         self.attacks = registry.attacks.resolve(self.attacks)
         self.targets = registry.targets.resolve(self.targets)
@@ -133,10 +142,7 @@ class RunConfig:
             raise InputError(f"attack(s) {', '.join(needs)} need a differentiable surrogate; "
                              f"{self.surrogate!r} is a black box (use --surrogate p2plane or p2point)")
         if self.budgets is None:
-            self.budgets = list(ds_cls.default_budgets)
-        if not self.budgets:
-            raise InputError("no budgets given")
-        self.budgets = [validate_budget(b) for b in self.budgets]
+            self.budgets = check_list_field("budgets", list(ds_cls.default_budgets))
         for key in ("samples", "batch_size", "threads", "dataset_seed"):
             v = getattr(self, key)
             if v is None and key == "samples":
@@ -149,9 +155,6 @@ class RunConfig:
             raise InputError(f"batch size must be >= 1, got {self.batch_size}")
         if self.threads < 1:
             raise InputError(f"--threads must be >= 1, got {self.threads}")
-        if not self.seeds or not all(seed_ok(s) for s in self.seeds):
-            raise InputError(f"seeds (--seed) must be a non-empty list of integers from "
-                             f"{SEED_MIN} to {SEED_MAX}, got {self.seeds!r}")
         if not seed_ok(self.dataset_seed) or self.dataset_seed < 0:
             raise InputError(f"dataset_seed must be an integer from 0 to {SEED_MAX}, got "
                              f"{self.dataset_seed!r}")
@@ -198,9 +201,7 @@ class RunConfig:
         ``manifest.json`` of a previous run (its ``config``: re-running it repeats that run)."""
         import yaml
 
-        p = Path(path)
-        if not p.is_file():
-            raise InputError(f"config file {p} does not exist")
+        p = config_file(path)
         try:
             data = yaml.safe_load(p.read_text())  # JSON is YAML
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
