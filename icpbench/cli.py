@@ -157,12 +157,13 @@ def _check_reference(reference: str, attacks: list[str] | set[str]) -> None:
 
 @app.command("list")
 def list_plugins() -> None:
-    """List every registered attack, target, dataset and corruption, and whether it can load."""
+    """List every registered attack, target, dataset, corruption and monitor, and whether it loads."""
     from tabulate import tabulate
 
     from icpbench.core import registry
 
-    for reg in (registry.attacks, registry.targets, registry.datasets, registry.corruptions):
+    for reg in (registry.attacks, registry.targets, registry.datasets, registry.corruptions,
+                registry.monitors):
         rows = [(i.name, "yes" if i.available else "NO", i.description if i.available else i.reason)
                 for i in reg.info()]
         typer.echo(f"\n{reg.kind}s ({reg.group}):")

@@ -1,17 +1,18 @@
 """Plugin registry over entry points.
 
-Built-in attacks, targets, datasets and corruptions are registered exactly like third-party plugins:
-through the entry-point groups ``icpbench.attacks``, ``icpbench.targets``, ``icpbench.datasets`` and
-``icpbench.corruptions`` of an installed distribution. Entry points are loaded lazily, so a plugin
-whose optional library is missing is reported as unavailable (with the reason) instead of breaking
-the rest of the tool.
+Built-in attacks, targets, datasets, corruptions and monitors are registered exactly like third-party
+plugins: through the entry-point groups ``icpbench.attacks``, ``icpbench.targets``,
+``icpbench.datasets``, ``icpbench.corruptions`` and ``icpbench.monitors`` of an installed
+distribution. Entry points are loaded lazily, so a plugin whose optional library is missing is
+reported as unavailable (with the reason) instead of breaking the rest of the tool.
 Plugins can also be registered at run time with :meth:`Registry.register` (tests, notebooks).
 
 Every plugin is checked when it is first loaded: its class must subclass the base of its kind
 (:class:`~icpbench.attacks.base.Attack`, :class:`~icpbench.targets.base.Target`,
-:class:`~icpbench.datasets.base.Dataset`, :class:`~icpbench.corruptions.base.Corruption`) and its
-``name`` must equal the key it is registered under (rows are written under ``cls.name`` and resumed
-under the key, so a mismatch would break resume).
+:class:`~icpbench.datasets.base.Dataset`, :class:`~icpbench.corruptions.base.Corruption`,
+:class:`~icpbench.monitors.base.Monitor`) and its ``name`` must equal the key it is registered
+under (rows are written under ``cls.name`` and resumed under the key, so a mismatch would break
+resume).
 User settings of a plugin (``--attack-param NAME.KEY=VALUE`` etc.) are checked against the
 settings the class declares (:func:`check_params`) before anything is built.
 """
@@ -545,3 +546,4 @@ attacks = Registry("attack", "icpbench.attacks", "icpbench.attacks.base:Attack")
 targets = Registry("target", "icpbench.targets", "icpbench.targets.base:Target")
 datasets = Registry("dataset", "icpbench.datasets", "icpbench.datasets.base:Dataset")
 corruptions = Registry("corruption", "icpbench.corruptions", "icpbench.corruptions.base:Corruption")
+monitors = Registry("monitor", "icpbench.monitors", "icpbench.monitors.base:Monitor")
