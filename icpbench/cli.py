@@ -1,20 +1,72 @@
 """Command-line interface (typer). The only place that prints and exits.
 
 User errors (bad names, budgets, files, checkpoints) exit with status 2 and one readable line.
+Ctrl-C (SIGINT) and SIGTERM stop every command with one line that says what is saved, and exit
+status 130 or 143 (128 + the signal), never a traceback (:func:`_on_stop`).
 """
 
 from __future__ import annotations
 
 import math
+import os
 import re
+import signal
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
-import typer
+if TYPE_CHECKING:
+    import pandas as pd
 
-from icpbench import __version__
-from icpbench.core.errors import IcpbenchError
+#: The signal that is stopping this command (SIGINT or SIGTERM), None while none came.
+_stop: int | None = None
+#: Whether :func:`main` runs a command: a stop signal then raises KeyboardInterrupt, which the
+#: command turns into one line; before, nothing has started and the process just ends.
+_running = False
+#: Whether the line about a stop signal has been written (a later signal is then ignored).
+_reported = False
+
+
+def _on_stop(signum: int, frame: object) -> None:
+    """SIGINT / SIGTERM handler of the ``icpbench`` process.
+
+    While the CLI is still being imported nothing can have been saved, so one line is written and
+    the process ends at once with 128 + signum. Once :func:`main` runs, KeyboardInterrupt is raised
+    (also for SIGTERM, which Python would otherwise end silently, leaving worker processes behind):
+    the command stops its workers, keeps what it saved and says so (:func:`_interrupted`)."""
+    global _stop
+    if _reported:  # the command is already saying so and exiting
+        return
+    _stop = signum
+    if not _running:
+        os.write(2, f"\n{_stop_word()} while starting; nothing was saved\n".encode())
+        os._exit(128 + signum)
+    raise KeyboardInterrupt
+
+
+def _install_stop_handlers() -> None:
+    """Handle SIGINT and SIGTERM with :func:`_on_stop` (a signal this process was started to
+    ignore, e.g. by ``nohup``, stays ignored)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, _on_stop)
+
+
+def _stop_word() -> str:
+    return "terminated (SIGTERM)" if _stop == signal.SIGTERM else "interrupted"
+
+
+# As early as this module can: the process is the CLI itself (`python -m icpbench.cli`, or the
+# `icpbench` script), not a program or a worker process that imports it.
+if __name__ == "__main__" or (Path(sys.argv[0]).name == "icpbench" and getattr(
+        sys.modules.get("__main__"), "__name__", "") == "__main__"):
+    _install_stop_handlers()
+
+import typer  # noqa: E402
+
+from icpbench import __version__  # noqa: E402
+from icpbench.core.errors import IcpbenchError  # noqa: E402
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Worst-case error of lidar ICP localisation under corrupted scans.")
@@ -134,16 +186,46 @@ def _out_dir(out: str, flag: str = "--out") -> Path:
     return Path(out)
 
 
-def _interrupted(out: Path | None, marker: str = "results.csv") -> None:
-    """Ctrl-C: say where the finished work is (only if some was saved: ``out/marker`` exists) and
-    that the same command resumes; exit 130."""
-    if out is not None and (out / marker).is_file():
-        typer.echo(f"\ninterrupted: the finished work is saved in {out}; re-run the same command "
-                   "to resume where it stopped", err=True)
+def _saved_rows(folders: Sequence[Path]) -> int:
+    """Result rows saved in the results folders ``folders`` (0 where a folder has none)."""
+    files = [f / "results.csv" for f in folders if (f / "results.csv").is_file()]
+    if not files:
+        return 0
+    from icpbench.harness.results import count_rows
+
+    return sum(count_rows(f.parent) for f in files)
+
+
+def _stopped(saved: str | None, what: str = "result") -> NoReturn:
+    """One line after Ctrl-C or SIGTERM: ``saved`` (what is saved and where) and that the same
+    command resumes, or that no ``what`` was saved and the same command starts from the
+    beginning; exit 128 + the signal (130 for Ctrl-C)."""
+    global _reported
+    _reported = True
+    if saved:
+        typer.echo(f"\n{_stop_word()}: {saved}; re-run the same command to resume where it "
+                   "stopped", err=True)
     else:
-        typer.echo("\ninterrupted before any result was saved; re-run the same command to resume "
-                   "(it starts from the beginning)", err=True)
-    raise typer.Exit(130)
+        typer.echo(f"\n{_stop_word()} before any {what} was saved; re-running the same command "
+                   "starts from the beginning", err=True)
+    raise typer.Exit(128 + (_stop or signal.SIGINT))
+
+
+def _interrupted(folders: Path | Sequence[Path] | None, where: Path | None = None) -> NoReturn:
+    """Ctrl-C or SIGTERM: how many result rows the results folder(s) ``folders`` hold
+    (``where``: the folder to name, default the only one), via :func:`_stopped`."""
+    folders = [] if folders is None else [folders] if isinstance(folders, Path) else list(folders)
+    n = _saved_rows(folders)
+    place = None if not n else where or (
+        folders[0] if len(folders) == 1 else Path(os.path.commonpath(folders)))
+    _stopped(f"{n} result row(s) are saved in {place}" if n else None)
+
+
+def _train_interrupted(out: Path | None) -> NoReturn:
+    """Ctrl-C or SIGTERM during ``train``: whether a checkpoint is saved in ``out`` (the same
+    command resumes from it) or not, via :func:`_stopped`."""
+    saved = out is not None and (out / "generator.pt").is_file()
+    _stopped(f"the last finished epoch is saved in {out}" if saved else None, "checkpoint")
 
 
 def _check_reference(reference: str, attacks: list[str] | set[str]) -> None:
@@ -415,10 +497,14 @@ def leaderboard(
     """Rank ICP variants by the worst case the attack ensemble finds against each (adaptive:
     --surrogate self), under the standard protocol of a domain unless told otherwise; writes
     leaderboard.md/.csv/.png and one results folder per variant."""
-    from icpbench.harness.leaderboard import STANDARD_VARIANTS, LeaderboardConfig, run_leaderboard
-
     out_dir: Path | None = None
     try:
+        from icpbench.harness.leaderboard import (
+            LeaderboardConfig,
+            run_leaderboard,
+            split_variant_labels,
+        )
+
         out_dir = _out_dir(out if out is not None else
                            "results/leaderboard" if domain == "town" else
                            f"results/leaderboard-{domain}")
@@ -439,11 +525,8 @@ def leaderboard(
             cfg.samples = samples
         if budgets is not None:
             cfg.budgets = _budgets(budgets)
-        if variants is not None:
-            labels = [v.strip() for v in variants.split(",") if v.strip()]
-            known = {v.label for v in STANDARD_VARIANTS}
-            # a label may contain commas only if it is a known one: re-join split pieces
-            cfg.variants = labels if all(lb in known for lb in labels) else [variants.strip()]
+        if variants is not None:  # a label may contain commas only if it is a known one
+            cfg.variants = split_variant_labels(variants)
         n = len(cfg.resolve())
         proto = cfg.protocol()
         if not quiet:
@@ -461,11 +544,42 @@ def leaderboard(
         board = run_leaderboard(cfg, out_dir, progress=not quiet, on_variant=note,
                                 compare_with=compare_with)
         typer.echo((out_dir / "leaderboard.md").read_text())
-        typer.echo(f"{n} variant(s), {len(board)} rows: {out_dir}/leaderboard.md, .csv, .png")
+        typer.echo(f"{board.variant.nunique()} of {n} variant(s) ranked, {len(board)} rows: "
+                   f"{out_dir}/leaderboard.md, .csv, .png")
+        if _board_warnings(board):
+            raise typer.Exit(2)
     except KeyboardInterrupt:
-        _interrupted(out_dir)
+        _interrupted(_board_runs(out_dir), None if out_dir is None else out_dir / "runs")
     except Exception as exc:
         _user_error(exc)
+
+
+def _board_runs(out_dir: Path | None) -> list[Path]:
+    """The results folders of a board's variants (``out/runs/*``)."""
+    runs = None if out_dir is None else out_dir / "runs"
+    return sorted(p for p in runs.iterdir() if p.is_dir()) if runs and runs.is_dir() else []
+
+
+def _board_warnings(board: pd.DataFrame) -> bool:
+    """Say on stderr what a board does not rank or count: variants not ranked, extra attacks that
+    did not run on a variant, scans that failed. True if something was not measured because its
+    rows failed (not merely skipped by the configuration): the command then exits with 2."""
+    skipped = board.attrs.get("skipped", {})
+    failed = False
+    for label, why in board.attrs.get("not_ranked", {}).items():
+        typer.echo(f"{'warning' if label in skipped else 'error'}: variant {label!r} is not "
+                   f"ranked: {why}", err=True)
+        failed |= label not in skipped
+    for attack, where in board.attrs.get("extra_not_run", {}).items():
+        for label, why in where.items():
+            typer.echo(f"error: extra attack {attack} did not run on variant {label!r}: {why}",
+                       err=True)
+            failed = True
+    for r in board[board.failed > 0].itertuples():
+        typer.echo(f"warning: variant {r.variant!r} at λ={r.budget:g}: {r.failed} of {r.scans} "
+                   "scan(s) failed (left out of its numbers; see the results in its runs/ "
+                   "folder)", err=True)
+    return failed
 
 
 def _write_or_echo(text: str, out: str | None) -> None:
@@ -586,12 +700,10 @@ def validate_map(
     """Do danger maps predict real trouble? Worst cases and cheap predictors against the errors of
     realistic corruptions, place by place: Spearman and ROC AUC with bootstrap intervals, a route
     figure, summary.json/md and a manifest in --out (the error rows in --out/run, resumable)."""
-    import sys
-
-    from icpbench.analysis.danger_validation import ValidationSettings, validate
-
     out_dir: Path | None = None
     try:
+        from icpbench.analysis.danger_validation import ValidationSettings, validate
+
         out_dir = _out_dir(out)
         settings = ValidationSettings(
             dataset=dataset, split=split, samples=None if samples == 0 else samples,
@@ -613,7 +725,7 @@ def validate_map(
                        f"{auc['ci95'][1]:.2f}]")
         typer.echo(f"written to {out_dir}: " + ", ".join(summary["files"]))
     except KeyboardInterrupt:
-        _interrupted(out_dir)
+        _interrupted(None if out_dir is None else out_dir / "run")
     except Exception as exc:
         _user_error(exc)
 
@@ -745,18 +857,30 @@ def train(
                        f"({r['converged']}/{r['samples']} converged), mean max displacement "
                        f"{r['disp_max_mean']:.3f}")
     except KeyboardInterrupt:
-        _interrupted(Path(out) if out.strip() else None, "generator.pt")
+        _train_interrupted(Path(out) if out.strip() else None)
     except Exception as exc:
         _user_error(exc)
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point. A stop signal that reached no command's own handling (while
+    the options are parsed, or in a command that saves nothing) still gives one line and
+    128 + the signal."""
+    global _running, _reported
+    _install_stop_handlers()
+    _running = True
     try:
         app()
     except KeyboardInterrupt:
-        typer.echo("interrupted; re-run the same command to resume", err=True)
-        sys.exit(130)
+        pass
+    except SystemExit:
+        if _stop is None or _reported:
+            raise
+    if not _reported:
+        _reported = True
+        typer.echo(f"\n{_stop_word()} before any result was saved; re-running the same command "
+                   "starts from the beginning", err=True)  # no command got to save anything
+    sys.exit(128 + (_stop or signal.SIGINT))
 
 
 if __name__ == "__main__":

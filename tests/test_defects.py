@@ -334,8 +334,9 @@ def test_ctrl_c_says_that_the_same_command_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr(runner, "run", interrupted)
     res = cli.invoke(app, ["run", "--dataset", "synthetic", "--attacks", "none", "--budgets", "1",
                            "--out", str(tmp_path / "o")])
-    assert res.exit_code == 130
-    assert "re-run the same command to resume" in res.output and "Aborted" not in res.output
+    assert res.exit_code == 130  # nothing was saved yet: the same command starts again
+    assert "re-running the same command starts from the beginning" in res.output
+    assert "Aborted" not in res.output
 
 
 # -- one bad file no longer kills the whole run -----------------------------------------------------

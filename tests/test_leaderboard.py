@@ -4,16 +4,33 @@ from __future__ import annotations
 
 import json
 import re
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
 import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from icpbench.cli import app
+from icpbench.core import registry
 from icpbench.core.errors import InputError
-from icpbench.harness.leaderboard import LeaderboardConfig, Variant
+from icpbench.core.types import Registration
+from icpbench.harness.leaderboard import (
+    LeaderboardConfig,
+    Variant,
+    run_leaderboard,
+    split_variant_labels,
+)
 from icpbench.harness.protocol import STANDARD_VERSION
+from icpbench.harness.results import load_results
+from icpbench.targets.base import Target
+from icpbench.targets.icp import icp_config
 
 runner = CliRunner()
 ARGS = ["leaderboard", "--samples", "2", "--dataset", "synthetic", "--dataset-param", "n_scan=600",
@@ -186,3 +203,209 @@ def test_a_run_resumed_after_an_attacks_default_changed_is_refused(tmp_path, mon
     res = runner.invoke(app, args)
     assert res.exit_code != 0
     assert "ensemble.patience: stored 8, now 3" in res.output
+
+
+# -- a board ranks only what was measured, and says what was not -------------------------------
+
+class _PlannedICP(Target):
+    """An ICP that, scan by scan, raises, returns a NaN pose or keeps its initial pose (a finite
+    estimate), as :attr:`plan` says: the k-th sample it prepares a map for follows ``plan[k]``
+    (the runner prepares each sample's map once, in sample order)."""
+
+    name: ClassVar[str] = "planned-icp"
+    description: ClassVar[str] = "raises, returns NaN or keeps T_init, per scan (tests)"
+    differentiable: ClassVar[bool] = False
+    plan: ClassVar[list[str]] = ["ok"]
+
+    def __init__(self, preset: str = "lidar", **overrides: Any) -> None:
+        self.config = icp_config(preset, **overrides)
+        self._prepared = 0
+
+    def prepare(self, map_points: np.ndarray, map_normals: np.ndarray) -> str:
+        k, self._prepared = self._prepared, self._prepared + 1
+        return type(self).plan[k % len(type(self).plan)]
+
+    def register(self, scans: torch.Tensor, maps: Sequence[str], T_init: torch.Tensor
+                 ) -> Registration:
+        if "raise" in maps:
+            raise RuntimeError("solver exploded")
+        T = T_init.detach().to(torch.float64).clone()
+        T[[k for k, m in enumerate(maps) if m == "nan"]] = float("nan")
+        B = len(maps)
+        return Registration(T=T, converged=torch.ones(B, dtype=torch.bool),
+                            iterations=torch.ones(B, dtype=torch.long),
+                            inlier_fraction=torch.ones(B, dtype=torch.float64), status=["ok"] * B)
+
+
+class _SteadyICP(_PlannedICP):
+    """Keeps its initial pose on every scan (a finite estimate; the board's other variant)."""
+
+    name: ClassVar[str] = "steady-icp"
+    plan: ClassVar[list[str]] = ["ok"]
+
+
+@pytest.fixture
+def planned_targets():
+    registry.targets.register("planned-icp", _PlannedICP)
+    registry.targets.register("steady-icp", _SteadyICP)
+    try:
+        yield _PlannedICP
+    finally:
+        _PlannedICP.plan = ["ok"]
+        registry.targets.unregister("planned-icp")
+        registry.targets.unregister("steady-icp")
+
+
+SMALL = ["leaderboard", "--samples", "2", "--dataset", "synthetic", "--dataset-param", "n_scan=600",
+         "--dataset-param", "n_map=6000", "--budgets", "0.5", "--ensemble-param",
+         "members=uniform,search", "--ensemble-param", "queries=2", "--quiet"]
+
+
+def test_a_target_that_fails_every_scan_is_not_ranked_and_the_command_says_so(tmp_path,
+                                                                               planned_targets):
+    """Before: a target raising on every scan was ranked (0% held, "diverged"), exit 0, no word;
+    one returning NaN poses crashed the board with a traceback."""
+    for plan, reason in ((["raise"], "every registration failed: RuntimeError: solver exploded"),
+                         (["nan"], "every registration gave a non-finite pose")):
+        planned_targets.plan = plan
+        out = tmp_path / plan[0]
+        res = runner.invoke(app, [*SMALL, "--variants", "p2point", "--add-target", "planned-icp",
+                                  "--out", str(out)])
+        assert res.exit_code == 2, res.output
+        assert "Traceback" not in res.output
+        assert f"error: variant 'planned-icp' is not ranked: {reason}" in res.stderr
+        board = pd.read_csv(out / "leaderboard.csv")
+        assert list(board.variant) == ["p2point"]  # ranked: only what was measured
+        md = (out / "leaderboard.md").read_text()
+        assert f"Not ranked: planned-icp: {reason}" in md
+        assert not re.search(r"^\| \d+ \| [^|]+ \| planned-icp \|", md, flags=re.M)
+        manifest = json.loads((out / "manifest.json").read_text())
+        assert manifest["skipped"]["planned-icp"].startswith(reason)
+
+
+def test_a_variant_with_some_failed_scans_is_ranked_on_the_scans_measured(tmp_path,
+                                                                          planned_targets):
+    planned_targets.plan = ["raise", "ok"]  # batch size 1: each scan on its own
+    cfg = LeaderboardConfig(dataset="synthetic", dataset_params={"n_scan": 600, "n_map": 6000},
+                            samples=2, budgets=[0.5], variants=[], batch_size=1,
+                            extra_targets=["planned-icp", "steady-icp"],
+                            ensemble={"members": "uniform,search", "queries": 2})
+    board = run_leaderboard(cfg, tmp_path / "b", progress=False)
+    r = board.set_index("variant").loc["planned-icp"]
+    assert (r.scans, r.failed, r.diverged) == (2, 1, 0)
+    rows = load_results(tmp_path / "b" / "runs" / "planned-icp")
+    ok = rows[(rows.attack == "ensemble") & (rows.status != "error")]
+    assert len(ok) == 1 and r.worst_mean == pytest.approx(float(ok.trans_err_xy.iloc[0]))
+    assert r.held_share in (0.0, 1.0)  # a share of the one scan measured
+    md = (tmp_path / "b" / "leaderboard.md").read_text()
+    assert "planned-icp λ=0.5: 1 failed, 0 diverged of 2" in md
+    assert "Not ranked" not in md
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(plan=st.lists(st.sampled_from(["raise", "nan", "ok"]), min_size=1, max_size=3))
+def test_a_variant_is_ranked_only_on_what_it_measured(plan, planned_targets):
+    """Any mix of raising, NaN and working scans: error and non-finite rows, the failures counted
+    on the board, and no rank for a variant that measured nothing (its reason stated)."""
+    planned_targets.plan = plan
+    cfg = LeaderboardConfig(dataset="synthetic", dataset_params={"n_scan": 600, "n_map": 6000},
+                            samples=len(plan), budgets=[0.5], variants=[], batch_size=1,
+                            extra_targets=["planned-icp", "steady-icp"],
+                            ensemble={"members": "uniform,search", "queries": 2})
+    with tempfile.TemporaryDirectory() as tmp:
+        board = run_leaderboard(cfg, Path(tmp), progress=False)
+        rows = load_results(Path(tmp) / "runs" / "planned-icp")
+        md = (Path(tmp) / "leaderboard.md").read_text()
+    for attack in ("none", "ensemble"):
+        status = rows[rows.attack == attack].sort_values("sample_id").status.tolist()
+        assert [s == "error" for s in status] == [p == "raise" for p in plan]
+        assert [s == "nonfinite" for s in status] == [p == "nan" for p in plan]
+    assert "steady-icp" in set(board.variant)
+    if "ok" in plan:
+        r = board.set_index("variant").loc["planned-icp"]
+        assert (r.scans, r.failed, r.diverged) == (len(plan), plan.count("raise"),
+                                                   plan.count("nan"))
+        assert np.isfinite(r.worst_mean) and np.isfinite(r["rank"])
+        if r.failed or r.diverged:
+            assert f"planned-icp λ=0.5: {r.failed} failed, {r.diverged} diverged" in md
+    else:
+        assert "planned-icp" not in set(board.variant)
+        why = board.attrs["not_ranked"]["planned-icp"]
+        assert why.startswith("every registration failed" if set(plan) == {"raise"} else
+                              "every registration gave a non-finite pose" if set(plan) == {"nan"}
+                              else "no registration gave a finite pose")
+        assert f"Not ranked: planned-icp: {why}" in md
+
+
+def test_an_extra_attack_that_never_ran_is_said_not_to_have_run(tmp_path):
+    """Before: `--extra-attacks generator` without a checkpoint showed "+ generator 0"."""
+    out = tmp_path / "b"
+    res = runner.invoke(app, [*SMALL, "--samples", "1", "--variants", "p2point",
+                              "--extra-attacks", "generator", "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "error: extra attack generator did not run on variant 'p2point': CheckpointError: no " \
+           "shipped generator checkpoint" in res.stderr
+    md = (out / "leaderboard.md").read_text()
+    assert "| did not run |" in md and "`generator` did not run" in md
+    assert "the same command tries it again" in md
+    board = pd.read_csv(out / "leaderboard.csv")
+    assert board.won_extra_generator.isna().all()  # not "0 wins"
+
+
+def test_a_gradient_extra_attack_on_a_target_without_gradients_skips_the_variant(
+        tmp_path, planned_targets):
+    """Before: the board stopped, advising `--surrogate p2plane`, an option it does not have."""
+    out = tmp_path / "b"
+    res = runner.invoke(app, [*SMALL, "--samples", "1", "--variants", "p2point",
+                              "--add-target", "planned-icp", "--extra-attacks", "pgd",
+                              "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "--surrogate p2plane" not in res.output
+    assert "warning: variant 'planned-icp' is not ranked: extra attack(s) pgd need gradients" \
+        in res.stderr
+    md = (out / "leaderboard.md").read_text()
+    assert "Not ranked: planned-icp: extra attack(s) pgd need gradients" in md
+    assert "rank a target that has a replica" in md
+    assert list(pd.read_csv(out / "leaderboard.csv").variant) == ["p2point"]
+    assert not (out / "runs" / "planned-icp").exists()  # skipped before any row
+
+
+def test_an_unknown_variant_is_named_alone(tmp_path):
+    res = runner.invoke(app, [*SMALL, "--variants", "p2point,bogus", "--out", str(tmp_path / "b")])
+    assert res.exit_code == 2
+    assert "unknown leaderboard variant(s) 'bogus'; valid: p2plane (Cauchy)" in res.output
+    assert "p2point,bogus" not in res.output
+    assert split_variant_labels(" p2point , p2plane (Cauchy),,") == ["p2point", "p2plane (Cauchy)"]
+    # a label with commas is kept whole only when it is a known one
+    assert split_variant_labels("x,a,b,c", known=["a,b"]) == ["x", "a,b", "c"]
+
+
+def test_ctrl_c_on_a_board_counts_the_rows_saved_in_its_runs_and_resumes(tmp_path, monkeypatch):
+    """Before: "interrupted before any result was saved" although a variant had finished."""
+    import icpbench.harness.leaderboard as lb
+
+    real = lb.run_grid
+    calls = []
+
+    def second_variant_interrupted(rc, out_dir, **kw):
+        calls.append(out_dir)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(rc, out_dir, **kw)
+
+    monkeypatch.setattr(lb, "run_grid", second_variant_interrupted)
+    out = tmp_path / "b"
+    args = [*SMALL, "--samples", "1", "--variants", "p2point,p2plane (Cauchy)", "--out",
+            str(out)]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 130 and "Traceback" not in res.output
+    n = len(pd.read_csv(out / "runs" / "p2point" / "results.csv"))
+    assert n > 0
+    assert f"interrupted: {n} result row(s) are saved in {out / 'runs'}; re-run the same " \
+           "command to resume" in res.stderr
+    assert "before any result was saved" not in res.output
+    monkeypatch.setattr(lb, "run_grid", real)
+    before = (out / "runs" / "p2point" / "results.csv").read_text()
+    res = runner.invoke(app, args)  # resumes: the finished variant is not computed again
+    assert res.exit_code == 0, res.output
+    assert (out / "runs" / "p2point" / "results.csv").read_text() == before

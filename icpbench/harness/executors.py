@@ -33,10 +33,12 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
@@ -152,7 +154,9 @@ class ProcessExecutor(Executor):
         pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_process_init,
                                    initargs=(worker.factory(), self.threads))
         try:
-            futures = [[pool.submit(_process_run, piece) for piece in group] for group in pieces]
+            with _stop_signals_held():  # the pool starts its processes in submit()
+                futures = [[pool.submit(_process_run, piece) for piece in group]
+                           for group in pieces]
             for item, group in zip(items, futures, strict=True):
                 per_sample = [self._result(f) for f in group]
                 for k in range(len(item.units)):
@@ -166,6 +170,7 @@ class ProcessExecutor(Executor):
             pool.shutdown(wait=False, cancel_futures=True)
             for proc in procs:
                 proc.terminate()
+            _reap(procs)
             raise
         pool.shutdown(wait=True)
 
@@ -198,6 +203,44 @@ def merge_sample_rows(per_sample: Sequence[list[Row]]) -> list[Row]:
     return [r for _, r in sorted(keyed, key=lambda kr: kr[0])]
 
 
+def _reap(procs: Sequence[Any], grace_s: float = 3.0) -> None:
+    """Wait up to ``grace_s`` for terminated worker processes to end, then kill the rest, so
+    that none outlives the run. (A worker still starting holds SIGTERM back until it is set up,
+    :func:`_stop_signals_held`; it usually ends within the grace.)"""
+    import time
+
+    deadline = time.monotonic() + grace_s
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+    for proc in procs:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(1.0)
+
+
+#: The signals that stop a run (Ctrl-C, ``kill``).
+STOP_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM})
+
+
+@contextmanager
+def _stop_signals_held() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back from this thread while it starts worker processes.
+
+    A process inherits the signal mask of the thread that starts it, so a Ctrl-C that reaches
+    the whole process group while a worker is still importing torch stays pending in that worker
+    (which ignores SIGINT and releases SIGTERM once it is set up, :func:`_process_init`) instead
+    of printing a KeyboardInterrupt traceback from it. This process receives a signal that came
+    meanwhile as soon as the block ends, and stops the pool as for any other."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 _PROCESS_WORKER: Any = None
 _PROCESS_ERROR: Exception | None = None
 
@@ -206,12 +249,13 @@ def _process_init(factory: Callable[[], Worker], threads: int) -> None:
     """Pool initializer: build this process's worker (a failure is kept and raised by each item,
     instead of breaking the pool with no message)."""
     global _PROCESS_WORKER, _PROCESS_ERROR
-    import signal
-
     import torch
 
-    # Ctrl-C reaches the whole process group: only the driver handles it (it stops the pool)
+    # Ctrl-C reaches the whole process group: only the driver handles it (it stops the pool);
+    # SIGTERM (the driver's terminate()) ends this process, also one that came while it started
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     torch.set_num_threads(threads)
     try:
         _PROCESS_WORKER = factory()

@@ -20,6 +20,11 @@ lambda does not count for it, :func:`summarise`). The ensemble alone is reported
 winner counts name the extra attacks too. Adding an attack to a finished board only computes that
 attack's rows.
 
+Only what was measured is ranked: a scan whose rows are errors (a plugin raised) is left out of
+a variant's numbers and counted, a variant that measured no finite worst case is not ranked, and
+an extra attack that did not run on a variant is said not to have run, with the reason each time
+(:func:`summarise`); the board lists them beside the ranking.
+
 Rows are ranked by the mean amplification at the middle budget, most robust first. Every variant
 is an ordinary results folder (``<out>/runs/<variant>/``), so the board resumes where it stopped and
 each number can be traced to its rows. A user's own ICP joins as a target plugin
@@ -51,9 +56,16 @@ from icpbench.harness.protocol import (
     protocol_differences,
     standard_protocol,
 )
-from icpbench.harness.results import RESULTS_FILE, load_results, read_manifest, write_json_atomic
-from icpbench.harness.runner import SELF, RunConfig, git_commit, package_versions
+from icpbench.harness.results import (
+    NOT_RUN,
+    RESULTS_FILE,
+    load_results,
+    read_manifest,
+    write_json_atomic,
+)
+from icpbench.harness.runner import SELF, RunConfig, build_target, git_commit, package_versions
 from icpbench.harness.runner import run as run_grid
+from icpbench.targets.self_surrogate import self_surrogate
 
 #: A scan counts as "held" when its worst-case error stays within this multiple of lambda.
 SAFE_AMPLIFICATION = 1.5
@@ -93,6 +105,28 @@ STANDARD_VARIANTS: tuple[Variant, ...] = (
     Variant("small-gicp GICP", "small-gicp"),
     Variant("small-gicp plane ICP", "small-gicp", {"registration_type": "PLANE_ICP"}),
 )
+
+
+def split_variant_labels(text: str, known: Sequence[str] | None = None) -> list[str]:
+    """The variant labels of a comma-separated list (``--variants``).
+
+    A label may itself contain commas only if it is a known one (``known``, default the labels
+    of :data:`STANDARD_VARIANTS`): the longest run of comma-separated pieces that spells a known
+    label is taken as one label, and any other piece is a label of its own, so that
+    ``"p2point,bogus"`` gives ``["p2point", "bogus"]`` and :meth:`LeaderboardConfig.resolve`
+    names ``bogus`` alone. Empty pieces are dropped."""
+    labels = set(known if known is not None else (v.label for v in STANDARD_VARIANTS))
+    pieces = text.split(",")
+    out: list[str] = []
+    i = 0
+    while i < len(pieces):
+        j = next((j for j in range(len(pieces), i, -1)
+                  if ",".join(pieces[i:j]).strip() in labels), i + 1)
+        label = ",".join(pieces[i:j]).strip()
+        if label:
+            out.append(label)
+        i = j
+    return out
 
 
 #: Attacks the standard board runs beside the ensemble: none, since every attack that found a
@@ -212,13 +246,19 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
                     compare_with: str | Path | None = None) -> pd.DataFrame:
     """Compute (or resume) every variant's run under ``out_dir/runs`` and write the board.
 
-    A variant whose settings its target refuses (e.g. a kernel it does not have) is skipped and
-    named in the board and its manifest. ``on_variant(variant, status)`` is called as each one
-    starts (``"running (k of n)"``), ends (its wall time) or is skipped (the reason); the run's own
-    progress bar shows the time left within a variant.
+    A variant whose settings its target refuses (e.g. a kernel it does not have), or whose target
+    cannot take a gradient extra attack (:func:`gradient_blind_reason`), is skipped; a variant
+    that measured nothing is not ranked (:func:`summarise`). Both are named with the reason in
+    the board, its manifest and ``board.attrs["not_ranked"]`` (label -> reason; the skipped ones
+    also in ``board.attrs["skipped"]``). ``on_variant(variant, status)`` is called as each one
+    starts (``"running (k of n)"``), ends (its wall time) or is skipped (the reason); the run's
+    own progress bar shows the time left within a variant.
 
     Returns:
-        The board (one row per variant and budget), also written as ``leaderboard.csv``.
+        The board (one row per ranked variant and budget), also written as ``leaderboard.csv``.
+
+    Raises:
+        InputError: no variant could be ranked (each one's reason is in the message).
     """
     out = Path(out_dir)
     variants = cfg.resolve()
@@ -234,10 +274,13 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
         rc = cfg.run_config(v)
         try:
             rc.validate()
+            why = gradient_blind_reason(rc)
         except InputError as exc:
-            skipped[v.label] = str(exc)
+            why = f"its target refused the settings: {exc}"
+        if why is not None:
+            skipped[v.label] = why
             if on_variant:
-                on_variant(v, f"skipped: {exc}")
+                on_variant(v, f"skipped: {why}")
             continue
         if on_variant:
             on_variant(v, f"running ({k} of {len(variants)})")
@@ -246,9 +289,40 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
         runs[v.label] = out / "runs" / v.slug
         if on_variant:
             on_variant(v, f"done in {time.perf_counter() - t0:.0f} s")
-    board = summarise(runs, cfg.budgets, cfg.extra_attacks)
-    write_board(board, out, cfg, skipped, compare_with=compare_with)
+    try:
+        board = summarise(runs, cfg.budgets, cfg.extra_attacks) if runs else None
+    except InputError as exc:
+        if not skipped:
+            raise
+        raise InputError(f"{exc}; skipped: " + "; ".join(
+            f"{k}: {v}" for k, v in skipped.items())) from None
+    if board is None:
+        raise InputError("no variant could be ranked: " + "; ".join(
+            f"{k}: {v}" for k, v in skipped.items()))
+    board.attrs["skipped"] = dict(skipped)
+    board.attrs["not_ranked"] = {**skipped, **board.attrs.get("not_ranked", {})}
+    write_board(board, out, cfg, board.attrs["not_ranked"], compare_with=compare_with)
     return board
+
+
+def gradient_blind_reason(rc: RunConfig) -> str | None:
+    """Why a variant's run cannot attack its target: an extra attack that needs gradients
+    (``needs_surrogate``) on a target with neither gradients nor a differentiable replica (on a
+    board every attack runs through the target itself, ``--surrogate self``); None if it can.
+
+    The ensemble is not such an attack: it skips its gradient member on these targets."""
+    needs = [a for a in rc.attacks if registry.attacks.get(a).needs_surrogate]
+    if not needs:
+        return None
+    preset = rc.icp_preset or registry.datasets.get(rc.dataset).icp_preset
+    blind = [t for t in rc.targets
+             if self_surrogate(build_target(t, preset, rc.target_params.get(t))) is None]
+    if not blind:
+        return None
+    return (f"extra attack(s) {', '.join(needs)} need gradients, and target {', '.join(blind)} "
+            "has neither gradients nor a differentiable replica; rank it without them (leave "
+            "them out of --extra-attacks: the ensemble skips its own gradient member on such a "
+            "target), or rank a target that has a replica")
 
 
 #: The ``kind`` a board's ``manifest.json`` records (a run folder's manifest has none).
@@ -289,42 +363,101 @@ def check_board_folder(out: Path, cfg: LeaderboardConfig) -> None:
                          "use a new --out, or the same settings to resume it")
 
 
+def _first_error(rows: pd.DataFrame) -> str:
+    """The first non-empty ``error`` message of ``rows`` (without the retry prefix), or ``""``."""
+    errs = rows.get("error", pd.Series(dtype=object)).dropna().astype(str)
+    errs = errs[errs.str.strip() != ""]
+    return errs.iloc[0].removeprefix(NOT_RUN) if len(errs) else ""
+
+
+def _failed(rows: pd.DataFrame) -> np.ndarray:
+    """Rows that measured nothing: a plugin raised (``status`` error)."""
+    return (rows.status == "error").to_numpy()
+
+
+def unmeasured_reason(df: pd.DataFrame, lam: float) -> str:
+    """Why a variant's results measured no finite worst case at budget ``lam`` (every
+    registration failed, the ensemble failed on every scan, or every pose was non-finite),
+    naming the first error message; the budget is named when other budgets measured some."""
+    e = df[(df.attack == "ensemble") & np.isclose(df.budget, lam)]
+    clean = df[df.attack == "none"]
+    failed = _failed(e)
+    if len(e) and failed.all():
+        if len(clean) and _failed(clean).all():
+            why = f"every registration failed: {_first_error(clean) or _first_error(e)}"
+        else:
+            why = f"the ensemble failed on every scan: {_first_error(e)}"
+    elif len(e) and not failed.any():
+        why = f"every registration gave a non-finite pose ({len(e)} scan(s))"
+    else:
+        why = (f"no registration gave a finite pose: {int(failed.sum())} scan(s) failed (first: "
+               f"{_first_error(e[failed])}), {int((~failed).sum())} non-finite")
+    ens = df[df.attack == "ensemble"]
+    others = ens[~np.isclose(ens.budget, lam)]
+    if len(others) and np.isfinite(others.trans_err_xy.to_numpy(dtype=float)).any():
+        why = f"nothing measured at λ={lam:g} m, the ranking budget: {why}"
+    return why
+
+
+def attack_not_run_reason(rows: pd.DataFrame) -> str | None:
+    """Why an extra attack's rows of one variant measured nothing (absent, or every row an error;
+    the first error message), or None when some row was measured."""
+    if rows.empty:
+        return "no rows (it was not run)"
+    if _failed(rows).all():
+        why = _first_error(rows) or "every row is an error"
+        errs = rows.error.fillna("").astype(str)
+        return why + ("; the same command tries it again" if errs.str.startswith(NOT_RUN).all()
+                      else "")
+    return None
+
+
 def summarise(runs: dict[str, Path], budgets: Sequence[float],
               extra_attacks: Sequence[str] = ()) -> pd.DataFrame:
-    """The board (one row per variant and budget) from the variants' results folders.
+    """The board (one row per ranked variant and budget) from the variants' results folders.
 
     A scan's worst case is the ensemble's error, or an extra attack's where it is larger (a
     diverged estimate never wins; an extra attack's scan with points moved beyond lambda,
     ``frac_over_budget`` > 0, is not counted and is reported as ``over_budget_<attack>``). With
-    extra attacks the ensemble's own mean is kept as ``ensemble_mean``."""
+    extra attacks the ensemble's own mean is kept as ``ensemble_mean``.
+
+    Only what was measured is ranked. A scan whose rows are errors (a plugin raised) measured
+    nothing: it is left out of the means and shares and counted in ``failed``; a scan whose
+    worst-case pose is non-finite counts as ``diverged`` (not held). A variant with no finite
+    worst case at the ranking (middle) budget is not ranked at all: it has no row, and
+    ``board.attrs["not_ranked"]`` maps its label to the reason (e.g. ``every registration failed:
+    <first error>``). An extra attack none of whose rows of a variant was measured is not
+    counted as losing every scan: ``board.attrs["extra_not_run"]`` maps ``attack -> {label:
+    reason}`` and its ``ran_extra_<attack>`` is false.
+
+    Raises:
+        InputError: no variant could be ranked (the message gives each one's reason).
+    """
     rows = []
     per_scan: dict[float, dict[str, pd.Series]] = {}  # budget -> variant -> worst case per scan
+    mid = sorted(budgets)[len(budgets) // 2]
+    not_ranked: dict[str, str] = {}
+    extra_not_run: dict[str, dict[str, str]] = {}
     for label, path in runs.items():
         df = load_results(path)
+        e_mid = df[(df.attack == "ensemble") & np.isclose(df.budget, mid)]
+        if not e_mid.empty and not _worst_errors(df, e_mid, mid, extra_attacks)[0].any():
+            not_ranked[label] = unmeasured_reason(df, mid)
+            continue
+        for a in extra_attacks:
+            why = attack_not_run_reason(df[df.attack == a])
+            if why is not None:
+                extra_not_run.setdefault(a, {})[label] = why
         clean = df[df.attack == "none"]
         clean_err = clean.drop_duplicates("sample_id").trans_err_xy
         for lam in budgets:
             e = df[(df.attack == "ensemble") & np.isclose(df.budget, lam)]
             if e.empty:
                 continue
-            err = e.trans_err_xy.to_numpy(dtype=float)
-            xs = {a: df[(df.attack == a) & np.isclose(df.budget, lam)] for a in extra_attacks}
-            won_extra: dict[str, np.ndarray] = {}
-            over: dict[str, int] = {}
-            ens_err = err.copy()
-            from_ensemble = np.ones(len(e), dtype=bool)
-            for a, x in xs.items():
-                x = x.set_index("sample_id").reindex(e.sample_id.to_numpy())
-                bad = x.frac_over_budget.to_numpy(dtype=float) > 0
-                xe = np.where(bad, np.nan, x.trans_err_xy.to_numpy(dtype=float))
-                better = score(xe) > score(err)
-                err = np.where(better, xe, err)
-                from_ensemble &= ~better
-                for b in won_extra:  # a scan has one winner: the last attack that raised it
-                    won_extra[b] &= ~better
-                won_extra[a] = better
-                over[a] = int(bad.sum())
-            ok = np.isfinite(err)
+            ok, err, ens_err, from_ensemble, won_extra, over, xs = _worst_errors(
+                df, e, lam, extra_attacks)
+            failed = _failed(e) & ~ok  # nothing measured (an extra attack may have measured it)
+            counted = ~failed
             per_scan.setdefault(float(lam), {})[label] = pd.Series(
                 np.where(ok, err, np.nan), index=e.sample_id.to_numpy())
             amp = err / lam
@@ -333,12 +466,14 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
             win = win.dropna().astype(int)
             row = {
                 "variant": label, "budget": float(lam), "scans": int(len(e)),
+                "failed": int(failed.sum()),
                 "clean_mean": float(clean_err.mean()), "clean_median": float(clean_err.median()),
                 "worst_mean": float(np.mean(err[ok])) if ok.any() else math.nan,
                 "worst_median": float(np.median(err[ok])) if ok.any() else math.nan,
                 "amplification": float(np.mean(amp[ok])) if ok.any() else math.nan,
-                "held_share": float(np.mean(ok & (amp <= SAFE_AMPLIFICATION))),
-                "diverged": int((~ok).sum()),
+                "held_share": float(np.mean((ok & (amp <= SAFE_AMPLIFICATION))[counted]))
+                if counted.any() else math.nan,
+                "diverged": int((~ok & counted).sum()),
                 "uniform_mean": float(np.nanmean(uni)) if uni.notna().any() else math.nan,
                 "attack_s": float(e.attack_time_s.mean()),
                 "queries": float(e.get("extra.queries", pd.Series(np.nan)).mean()),
@@ -357,19 +492,56 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
                 row[f"won_{m}"] = int((win == i).sum())
                 ran = e.get(f"extra.{column(m)}")
                 row[f"ran_{m}"] = ran is not None and bool(ran.notna().any())
-            for a in extra_attacks:
-                row[f"won_extra_{a}"] = int(won_extra[a].sum())
-                row[f"over_budget_{a}"] = over[a]
+            for a in extra_attacks:  # an attack that did not run won nothing, lost nothing
+                ran = label not in extra_not_run.get(a, {})
+                row[f"won_extra_{a}"] = int(won_extra[a].sum()) if ran else math.nan
+                row[f"over_budget_{a}"] = over[a] if ran else math.nan
             rows.append(row)
     board = pd.DataFrame(rows)
     if board.empty:
+        if not_ranked:
+            raise InputError("no variant could be ranked: " + "; ".join(
+                f"{k}: {v}" for k, v in not_ranked.items()))
         raise InputError("no variant produced ensemble rows: nothing to rank")
     board = board.join(_intervals(per_scan), on=["budget", "variant"])
-    mid = sorted(budgets)[len(budgets) // 2]
     rank = board[np.isclose(board.budget, mid)].set_index("variant").amplification
     board["rank_key"] = board.variant.map(rank).fillna(np.inf)
-    return board.sort_values(["rank_key", "variant", "budget"]).drop(columns="rank_key") \
+    board = board.sort_values(["rank_key", "variant", "budget"]).drop(columns="rank_key") \
         .reset_index(drop=True)
+    board.attrs["not_ranked"] = not_ranked
+    board.attrs["extra_not_run"] = extra_not_run
+    return board
+
+
+def _worst_errors(df: pd.DataFrame, e: pd.DataFrame, lam: float, extra_attacks: Sequence[str]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                             dict[str, np.ndarray], dict[str, int], dict[str, pd.DataFrame]]:
+    """Each scan's worst case at budget ``lam``: the ensemble's rows ``e``, raised by the extra
+    attacks' where larger (within lambda, finite).
+
+    Returns:
+        ``(ok, err, ens_err, from_ensemble, won_extra, over, xs)``: finite worst case per scan,
+        the worst-case errors, the ensemble's own, the scans the ensemble won, the scans each
+        extra attack won, the scans each moved beyond lambda, and each extra attack's rows.
+    """
+    err = e.trans_err_xy.to_numpy(dtype=float)
+    xs = {a: df[(df.attack == a) & np.isclose(df.budget, lam)] for a in extra_attacks}
+    won_extra: dict[str, np.ndarray] = {}
+    over: dict[str, int] = {}
+    ens_err = err.copy()
+    from_ensemble = np.ones(len(e), dtype=bool)
+    for a, x in xs.items():
+        x = x.set_index("sample_id").reindex(e.sample_id.to_numpy())
+        bad = x.frac_over_budget.to_numpy(dtype=float) > 0
+        xe = np.where(bad, np.nan, x.trans_err_xy.to_numpy(dtype=float))
+        better = score(xe) > score(err)
+        err = np.where(better, xe, err)
+        from_ensemble &= ~better
+        for b in won_extra:  # a scan has one winner: the last attack that raised it
+            won_extra[b] &= ~better
+        won_extra[a] = better
+        over[a] = int(bad.sum())
+    return np.isfinite(err), err, ens_err, from_ensemble, won_extra, over, xs
 
 
 def _intervals(per_scan: dict[float, dict[str, pd.Series]]) -> pd.DataFrame:
@@ -401,7 +573,9 @@ def ran_members(board: pd.DataFrame) -> list[str]:
 
 
 def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[str, str]) -> str:
-    """The board as Markdown: the ranking, then time/queries and the members' wins."""
+    """The board as Markdown: the ranking, then time/queries and the members' wins, then what was
+    not measured: extra attacks that did not run (``board.attrs["extra_not_run"]``), scans that
+    failed or diverged, and the variants not ranked (``skipped``: label -> reason)."""
     budgets = sorted(board.budget.unique())
     order = list(dict.fromkeys(board.variant))
     members = ran_members(board)
@@ -455,7 +629,8 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
         cells = [v] + [f"{_fmt(r.loc[lam].attack_s, 1)} / {_fmt(r.loc[lam].queries, 0)}"
                        if lam in r.index else "-" for lam in budgets]
         cells += [str(int(r[f"won_{m}"].sum())) for m in members]
-        cells += [str(int(r[f"won_extra_{a}"].sum())) for a in extras]
+        cells += ["did not run" if r[f"won_extra_{a}"].isna().all() else
+                  str(int(r[f"won_extra_{a}"].sum())) for a in extras]
         lines.append("| " + " | ".join(cells) + " |")
     weak = board[board.weak_gradient > 0]
     if not weak.empty:
@@ -467,9 +642,17 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
     if any(over.values()):
         lines += ["", "Not counted (points moved beyond λ): " + ", ".join(
             f"`{a}` on {n} scan(s)" for a, n in over.items() if n) + "."]
+    for a, where in board.attrs.get("extra_not_run", {}).items():
+        lines += ["", f"`{a}` did not run (its wins are not counted) on " + "; ".join(
+            f"{v}: {why}" for v, why in where.items())]
+    lost = board[(board.failed > 0) | (board.diverged > 0)]
+    if not lost.empty:
+        lines += ["", "Scans not measured (a plugin raised: *failed*, left out of every number) "
+                  "and diverged (non-finite pose: counted as not held): " + ", ".join(
+                      f"{r.variant} λ={r.budget:g}: {r.failed} failed, {r.diverged} diverged of "
+                      f"{r.scans}" for r in lost.itertuples()) + "."]
     if skipped:
-        lines += ["", "Not ranked (their target refused the settings): " + "; ".join(
-            f"{k}: {v}" for k, v in skipped.items())]
+        lines += ["", "Not ranked: " + "; ".join(f"{k}: {v}" for k, v in skipped.items())]
     return "\n".join(lines) + "\n"
 
 
@@ -528,7 +711,8 @@ def agreement_line(board: pd.DataFrame, other: Path) -> str:
 
 def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
                 skipped: dict[str, str], compare_with: str | Path | None = None) -> None:
-    """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` into ``out``; with
+    """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` (``skipped``: the
+    variants not ranked and why; ``extra_not_run``) into ``out``; with
     ``compare_with`` (another board's folder), the Markdown states the agreement of the two
     rankings (:func:`agreement_line`)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -543,5 +727,6 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
     write_json_atomic(out / "manifest.json", {
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
-        "skipped": skipped, "versions": package_versions(), "git": git_commit(), "finished": True,
+        "skipped": skipped, "extra_not_run": board.attrs.get("extra_not_run", {}),
+        "versions": package_versions(), "git": git_commit(), "finished": True,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})

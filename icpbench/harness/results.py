@@ -57,6 +57,13 @@ COLUMNS = (
 TIMING_COLUMNS = ("attack_time_s", "icp_time_s")
 #: Pose-error columns: a row with a non-finite one is never counted as converged.
 ERROR_COLUMNS = ("trans_err_xy", "trans_err", "rot_err")
+#: Columns that hold numbers. A target that returns a NaN or infinite pose writes ``nan``/``inf``
+#: into them; they are read as numbers, not as text (text columns keep ``"nan"`` as text).
+NUMERIC_COLUMNS = (
+    "iterations", "inlier_fraction", "rho_x", "rho_y", "rho_z", "phi_x", "phi_y", "phi_z",
+    "trans_err_xy", "trans_err", "rot_err", "yaw_err", "disp_max", "disp_mean", "disp_p95",
+    "frac_over_budget", "disp_max_raw", "attack_time_s", "icp_time_s",
+)
 
 
 def row_key(row: Mapping[str, Any]) -> tuple:
@@ -212,8 +219,9 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     Incomplete rows (a half-written line: no ``status``) are dropped, and of several rows with the
     same key (sample, attack, target, budget, seed) only the last is kept; their numbers are in
     ``df.attrs["incomplete_rows"]`` and ``df.attrs["duplicate_rows"]``. A row whose pose error is
-    not finite never counts as converged. With ``expand``, the JSON ``meta`` and ``extra`` columns
-    are expanded into ``meta.<key>`` and ``extra.<key>`` columns.
+    not finite never counts as converged; ``nan`` and ``inf`` in the :data:`NUMERIC_COLUMNS` are
+    read as numbers (a target that returns NaN poses writes them). With ``expand``, the JSON
+    ``meta`` and ``extra`` columns are expanded into ``meta.<key>`` and ``extra.<key>`` columns.
     """
     p = Path(path)
     if p.is_dir():
@@ -246,6 +254,9 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
                          f"(seeds must be 64-bit integers: {exc})") from exc
     n_before = len(df)
     df = df.drop_duplicates(list(KEY_COLUMNS), keep="last").reset_index(drop=True)
+    for c in NUMERIC_COLUMNS:  # "nan"/"inf" are numbers here (ids stay text: no default NA)
+        if c in df and not pd.api.types.is_numeric_dtype(df[c]):
+            df[c] = pd.to_numeric(df[c], errors="coerce").astype(float)
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
     df["strict"] = df["strict"].astype(str).str.lower().isin(["true", "1"])
     for c in ERROR_COLUMNS:
