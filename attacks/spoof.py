@@ -105,8 +105,7 @@ def misfit(points_map: np.ndarray, offset: np.ndarray, map_index: Any, budget_m:
         return 0.0
     dist, _ = map_index.query(points_map[ok] + offset)
     cap = MISFIT_CAP * budget_m
-    return float(np.mean(np.minimum(np.maximum(np.nan_to_num(dist, posinf=np.inf) - budget_m,
-                                               0.0), cap)))
+    return float(np.mean(np.minimum(np.maximum(dist - budget_m, 0.0), cap)))  # inf: no map
 
 
 class SpoofAttack(Attack):

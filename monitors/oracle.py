@@ -25,7 +25,6 @@ import numpy as np
 import torch
 
 from icpbench.core.errors import InputError
-from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch, Registration
 from icpbench.monitors.base import Monitor
 from icpbench.monitors.inputs import MonitorInput, MotionPrior
@@ -118,47 +117,16 @@ class MonitoredOracle(QueryOracle):
         self.last_flagged = np.zeros(0, dtype=bool)
 
     @classmethod
-    def prepared(cls, target: Target, batch: Batch,  # type: ignore[override]
-                 monitors: Sequence[Monitor] = ()) -> MonitoredOracle:
-        """The monitored oracle of ``target`` on ``batch`` with its maps prepared here (see
-        :meth:`QueryOracle.prepared`)."""
-        maps = batch.maps if target.differentiable else [
-            target.prepare(s.map, s.map_normals) for s in batch.samples]
-        return cls(target, batch, maps, monitors)
-
-    @classmethod
     def wrap(cls, oracle: QueryOracle, monitors: Sequence[Monitor]) -> MonitoredOracle:
         """The monitored oracle of an existing oracle's target, batch and maps (fresh counts)."""
         return cls(oracle.target, oracle.batch, oracle.maps, monitors)
 
-    def register(self, scans: torch.Tensor | np.ndarray, index: Sequence[int] | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        """Register adversarial scans (one query per sample) and check each registration.
-
-        As :meth:`QueryOracle.register` (the same registration, pose and error), except that the
-        error is NaN where a monitor fires. The target's status is returned unchanged.
-
-        Returns:
-            ``(T, err_xy, status)``: poses (K, 4, 4) float64, horizontal errors (K,) in metres (NaN
-            where the pose is not finite or a monitor fired), the target's per-sample status.
-        """
-        idx = np.arange(len(self.batch)) if index is None else np.asarray(index, dtype=np.int64)
-        x = torch.as_tensor(np.asarray(scans) if isinstance(scans, np.ndarray) else scans.detach())
-        if x.ndim != 3 or x.shape[0] != idx.size or x.shape[-1] != 3:
-            raise InputError(f"oracle: scans must have shape ({idx.size}, N, 3), got "
-                             f"{tuple(x.shape)}")
-        sel = torch.as_tensor(idx)
-        with torch.no_grad():  # as QueryOracle.register
-            reg = self.target.register(x.to(self.batch.scans.dtype), [self.maps[i] for i in idx],
-                                       self.batch.T_init[sel])
-        np.add.at(self.queries, idx, 1)
-        T = reg.T.detach().to(torch.float64)
-        xi = pose_error(T, self.batch.T_gt[sel].to(torch.float64))
-        err = torch.linalg.norm(xi[:, :2], dim=-1).numpy()
-        err = np.where(np.isfinite(err), err, np.nan)
-        T_np = T.numpy()
-        flags = self._check(x.detach().to(torch.float64).numpy(), T_np, reg, idx)
-        return T_np, np.where(flags, np.nan, err), list(reg.status)
+    def _judge(self, scans: torch.Tensor, T: np.ndarray, reg: Registration, idx: np.ndarray,
+               err: np.ndarray) -> np.ndarray:
+        """As :meth:`QueryOracle.register` (the same registration, pose and error), except that
+        the error is NaN where a monitor fires (the target's status is returned unchanged)."""
+        flags = self._check(scans.detach().to(torch.float64).numpy(), T, reg, idx)
+        return np.where(flags, np.nan, err)
 
     def _check(self, scans: np.ndarray, T: np.ndarray, reg: Registration, idx: np.ndarray
                ) -> np.ndarray:

@@ -45,13 +45,14 @@ class QueryOracle:
         self.queries = np.zeros(len(batch), dtype=np.int64)
 
     @classmethod
-    def prepared(cls, target: Target, batch: Batch) -> QueryOracle:
+    def prepared(cls, target: Target, batch: Batch, **settings: Any) -> QueryOracle:
         """The oracle of ``target`` on ``batch`` with its maps prepared here: the batch's
         ``MapIndex`` for a differentiable target, ``target.prepare`` of each map otherwise (the
-        runner shares prepared maps across batches instead)."""
+        runner shares prepared maps across batches instead); ``settings`` go to the constructor
+        of a subclass."""
         maps = batch.maps if target.differentiable else [
             target.prepare(s.map, s.map_normals) for s in batch.samples]
-        return cls(target, batch, maps)
+        return cls(target, batch, maps, **settings)
 
     @property
     def name(self) -> str:
@@ -86,7 +87,15 @@ class QueryOracle:
         xi = pose_error(T, self.batch.T_gt[sel].to(torch.float64))
         err = torch.linalg.norm(xi[:, :2], dim=-1).numpy()
         err = np.where(np.isfinite(err), err, np.nan)
-        return T.numpy(), err, list(reg.status)
+        T_np = T.numpy()
+        return T_np, self._judge(x, T_np, reg, idx, err), list(reg.status)
+
+    def _judge(self, scans: torch.Tensor, T: np.ndarray, reg: Any, idx: np.ndarray,
+               err: np.ndarray) -> np.ndarray:
+        """The errors (K,) an attack is told for K registrations of ``scans`` (K, N, 3) at poses
+        ``T`` (K, 4, 4) of the samples ``idx``: here ``err`` itself; a subclass may hide some
+        (e.g. those an integrity monitor flags)."""
+        return err
 
     def errors(self, scans: torch.Tensor | np.ndarray, index: Sequence[int] | None = None
                ) -> np.ndarray:
