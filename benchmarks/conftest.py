@@ -1,15 +1,37 @@
 """Benchmark settings: one torch thread (threads are chosen deliberately on small CPUs; README,
-"Conventions") and a terminal summary of the speed ratios that ``bench_icp.py`` records."""
+"Conventions"), no cached computation, and a terminal summary of the speed ratios that the
+benchmarks record.
+
+A benchmark times computation: the ICP forward-pass cache (``icpbench.targets.forward_cache``,
+which in a run hands back the result of a scan registered before) is disabled for every benchmark
+and checked to hold nothing afterwards, so no timed round can be a cache hit; each benchmark's
+``extra_info`` says so (``forward_cache: disabled``). Before 2026-11-27 it was on, and the
+``forward`` phase of ``bench_icp.py`` timed the cache from the second round on (1 ms against
+Open3D's 500 ms for the 10k-point scan).
+"""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
+from icpbench.targets import forward_cache
+
 torch.set_num_threads(1)
 
 #: (case, phase) -> our median time, Open3D's median time and their ratio, filled by the benches.
 RATIOS: dict[tuple[str, str], dict[str, float]] = {}
+
+
+@pytest.fixture(autouse=True)
+def no_forward_cache(request):
+    """Every benchmark runs with the ICP forward-pass cache off, and must leave it empty."""
+    forward_cache.clear()
+    if "benchmark" in request.fixturenames:
+        request.getfixturevalue("benchmark").extra_info["forward_cache"] = "disabled"
+    with forward_cache.disabled():
+        yield
+    assert forward_cache.size() == 0, "a benchmark stored an ICP result: later rounds could hit it"
 
 
 @pytest.fixture(scope="session")

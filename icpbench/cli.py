@@ -7,7 +7,6 @@ status 130 or 143 (128 + the signal), never a traceback (:func:`_on_stop`).
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import signal
@@ -67,8 +66,17 @@ import typer  # noqa: E402
 
 from icpbench import __version__  # noqa: E402
 from icpbench.core.errors import IcpbenchError  # noqa: E402
+from icpbench.harness import options as opts  # noqa: E402
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+LB, MAP, VM, TR, OS = (opts.LeaderboardOptions, opts.MapOptions, opts.ValidateMapOptions,
+                       opts.TrainOptions, opts.ObjectStudyOptions)
+
+
+def _opt(model: type[opts.Options], name: str, *decls: str, **kw: object) -> typer.models.OptionInfo:
+    """A typer option whose help is the model field's description (stated once, in the model)."""
+    return typer.Option(*decls, help=model.help(name), **kw)
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
                   help="Worst-case error of lidar ICP localisation under corrupted scans.")
 
 
@@ -113,35 +121,6 @@ def _user_error(exc: Exception) -> None:
                         "--dataset-param KEY=VALUE, --attack-param NAME.KEY=VALUE or "
                         "--target-param NAME.KEY=VALUE)"))
     raise exc
-
-
-def _ints(text: str, what: str) -> list[int]:
-    try:
-        return [int(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise typer.BadParameter(f"{what} must be comma-separated integers, got {text!r}") from None
-
-
-def _floats(text: str, what: str) -> list[float]:
-    try:
-        return [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise typer.BadParameter(f"{what} must be comma-separated numbers, got {text!r}") from None
-
-
-def _budgets(text: str, flag: str = "--budgets") -> list[float]:
-    """Comma-separated budgets, checked by the rule of every run
-    (:func:`icpbench.harness.settings.check_budgets`: sensible, distinct in the tables)."""
-    from icpbench.core.errors import InputError
-    from icpbench.harness.settings import check_budgets
-
-    values = _floats(text, flag)
-    if not values:
-        raise typer.BadParameter(f"{flag} has no numbers: {text!r}")
-    try:
-        return check_budgets(values)
-    except InputError as exc:
-        raise InputError(f"{flag}: {exc}") from None
 
 
 def _kv(item: str, flag: str) -> tuple[str, object]:
@@ -343,19 +322,11 @@ def run(
 
         out_dir = _out_dir(out)
         base = RunConfig.from_file(config) if config is not None else RunConfig()
-        given: dict[str, object] = {
-            "attacks": attacks, "targets": targets, "dataset": dataset,
-            "budgets": None if budgets is None else _floats(budgets, "--budgets"),
-            "samples": samples, "seeds": None if seed is None else _ints(seed, "--seed"),
-            "surrogate": surrogate, "split": split, "strict": strict, "batch_size": batch_size,
-            "threads": threads, "executor": executor, "strict_files": strict_files,
-            "corruptions": None if corruptions is None else [c.strip() for c in corruptions.split(",")
-                                                             if c.strip()],
-            "severities": None if severities is None else _ints(severities, "--severities")}
-        if budgets is not None and not given["budgets"]:
-            raise typer.BadParameter(f"--budgets has no numbers: {budgets!r}")
-        if seed is not None and not given["seeds"]:
-            raise typer.BadParameter(f"--seed has no numbers: {seed!r}")
+        given: dict[str, object] = {  # list fields as the flag's text: RunOptions reads them
+            "attacks": attacks, "targets": targets, "dataset": dataset, "budgets": budgets,
+            "samples": samples, "seeds": seed, "surrogate": surrogate, "split": split,
+            "strict": strict, "batch_size": batch_size, "threads": threads, "executor": executor,
+            "strict_files": strict_files, "corruptions": corruptions, "severities": severities}
         if dataset is not None and config is not None and dataset != base.dataset:
             base.dataset_params = {}  # another dataset: the file's dataset settings do not apply
             if budgets is None:
@@ -455,44 +426,20 @@ def table(
 
 @app.command()
 def leaderboard(
-    domain: Annotated[str, typer.Option(
-        help="Standard domain: 'town' (the default simulated town and sensor) or 'unseen' "
-             "(town 101, 64-beam sensor).")] = "town",
-    samples: Annotated[int | None, typer.Option(
-        help="Scans per variant (the first K of the split); departs from the standard protocol. "
-             "[default: the protocol's, 48]")] = None,
-    budgets: Annotated[str | None, typer.Option(
-        help="Comma-separated budgets λ (metres); departs from the standard protocol. "
-             "[default: the protocol's, 1]")] = None,
-    variants: Annotated[str | None, typer.Option(
-        help="Comma-separated labels of the standard variants to rank. [default: all]")] = None,
-    add_target: Annotated[list[str] | None, typer.Option(
-        help="A further target plugin to rank with its defaults (repeatable): your own ICP.")]
-    = None,
-    extra_attacks: Annotated[str | None, typer.Option(
-        help="Comma-separated attacks run on every variant beside the ensemble, with their "
-             "defaults (your own attack plugin); a scan's worst case is the largest over the "
-             "ensemble and these. [default: none]")] = None,
-    dataset: Annotated[str | None, typer.Option(
-        help="Dataset; departs from the standard protocol. [default: the domain's, lidar-sim]")]
-    = None,
-    dataset_param: Annotated[list[str] | None, typer.Option(
-        help="Dataset setting KEY=VALUE, repeatable; departs from the standard protocol.")] = None,
-    ensemble_param: Annotated[list[str] | None, typer.Option(
-        help="Ensemble setting KEY=VALUE, repeatable (members, pgd_steps, pgd_step_size, "
-             "sector_iterations, queries, patience, spoof_queries, valley_queries, directions, "
-             "screen); departs from the standard protocol.")] = None,
-    seed: Annotated[int | None, typer.Option(
-        help="Attack seed; departs from the standard protocol. [default: 0]")] = None,
-    executor: Annotated[str, typer.Option(help="local, processes or ray (see `icpbench run`).")]
-    = "local",
-    out: Annotated[str | None, typer.Option(
-        help="Board folder (re-run to resume). [default: results/leaderboard, "
-             "results/leaderboard-unseen for the unseen domain]")] = None,
-    compare_with: Annotated[str | None, typer.Option(
-        help="Another board's folder (e.g. the other domain's): state the agreement of the two "
-             "rankings (Kendall's tau) on this board.")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
+    domain: Annotated[str, _opt(LB, "domain")] = "town",
+    samples: Annotated[int | None, _opt(LB, "samples")] = None,
+    budgets: Annotated[str | None, _opt(LB, "budgets")] = None,
+    variants: Annotated[str | None, _opt(LB, "variants")] = None,
+    add_target: Annotated[list[str] | None, _opt(LB, "add_target")] = None,
+    extra_attacks: Annotated[str | None, _opt(LB, "extra_attacks")] = None,
+    dataset: Annotated[str | None, _opt(LB, "dataset")] = None,
+    dataset_param: Annotated[list[str] | None, _opt(LB, "dataset_param")] = None,
+    ensemble_param: Annotated[list[str] | None, _opt(LB, "ensemble_param")] = None,
+    seed: Annotated[int | None, _opt(LB, "seed")] = None,
+    executor: Annotated[str, _opt(LB, "executor")] = "local",
+    out: Annotated[str | None, _opt(LB, "out")] = None,
+    compare_with: Annotated[str | None, _opt(LB, "compare_with")] = None,
+    quiet: Annotated[bool, _opt(LB, "quiet", "--quiet")] = False,
 ) -> None:
     """Rank ICP variants by the worst case the attack ensemble finds against each (adaptive:
     --surrogate self), under the standard protocol of a domain unless told otherwise; writes
@@ -505,28 +452,32 @@ def leaderboard(
             split_variant_labels,
         )
 
-        out_dir = _out_dir(out if out is not None else
-                           "results/leaderboard" if domain == "town" else
-                           f"results/leaderboard-{domain}")
-        cfg = LeaderboardConfig.for_domain(domain, executor=executor,
-                                           extra_targets=list(add_target or []))
-        if dataset is not None:
-            cfg.dataset, cfg.dataset_params = dataset, {}
-        if dataset_param:
-            cfg.dataset_params = {**cfg.dataset_params,
-                                  **_flat(dataset_param, "--dataset-param")}
-        if ensemble_param:
-            cfg.ensemble = _flat(ensemble_param, "--ensemble-param")
-        if seed is not None:
-            cfg.seed = seed
+        o = LB.parse(dict(
+            domain=domain, samples=samples, budgets=budgets, variants=variants,
+            add_target=list(add_target or []), extra_attacks=extra_attacks or [],
+            dataset=dataset, dataset_param=_flat(dataset_param, "--dataset-param"),
+            ensemble_param=_flat(ensemble_param, "--ensemble-param"), seed=seed,
+            executor=executor, out=out, compare_with=compare_with, quiet=quiet))
+        out_dir = Path(o.out if o.out is not None else "results/leaderboard"
+                       if o.domain == "town" else f"results/leaderboard-{o.domain}")
+        cfg = LeaderboardConfig.for_domain(o.domain, executor=o.executor,
+                                           extra_targets=list(o.add_target))
+        if o.dataset is not None:
+            cfg.dataset, cfg.dataset_params = o.dataset, {}
+        if o.dataset_param:
+            cfg.dataset_params = {**cfg.dataset_params, **o.dataset_param}
+        if o.ensemble_param:
+            cfg.ensemble = dict(o.ensemble_param)
+        if o.seed is not None:
+            cfg.seed = o.seed
         if extra_attacks is not None:
-            cfg.extra_attacks = [a.strip() for a in extra_attacks.split(",") if a.strip()]
-        if samples is not None:
-            cfg.samples = samples
-        if budgets is not None:
-            cfg.budgets = _budgets(budgets)
-        if variants is not None:  # a label may contain commas only if it is a known one
-            cfg.variants = split_variant_labels(variants)
+            cfg.extra_attacks = list(o.extra_attacks)
+        if o.samples is not None:
+            cfg.samples = o.samples
+        if o.budgets is not None:
+            cfg.budgets = list(o.budgets)
+        if o.variants is not None:  # a label may contain commas only if it is a known one
+            cfg.variants = split_variant_labels(o.variants)
         n = len(cfg.resolve())
         proto = cfg.protocol()
         if not quiet:
@@ -612,25 +563,17 @@ def show_dataset(
 
 @app.command("map")
 def danger_map(
-    attack: Annotated[str, typer.Option(help="Attack that estimates the worst case.")]
-    = "generator",
-    budget: Annotated[float, typer.Option(help="Budget λ in metres.")] = 1.0,
-    dataset: Annotated[str, typer.Option(help="A route dataset (lidar-sim, kitti, boreas).")]
-    = "lidar-sim",
-    split: Annotated[str, typer.Option(help="Dataset split (test passes).")] = "test",
-    samples: Annotated[int | None, typer.Option(help="Locations x passes (default all).")] = None,
-    compare: Annotated[str | None, typer.Option(
-        help="Also run this attack and write the difference figure (paper fig. 6), e.g. sector.")]
-    = None,
-    attack_param: Annotated[list[str] | None, typer.Option(help="NAME.KEY=VALUE.")] = None,
-    dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
-    out: Annotated[str, typer.Option(help="Output directory (re-run to resume).")]
-    = "runs/map",
-    executor: Annotated[str, typer.Option(
-        help="local (one process), processes or ray (one worker per core); results do not "
-             "depend on it.")]
-    = "local",
-    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
+    attack: Annotated[str, _opt(MAP, "attack")] = "generator",
+    budget: Annotated[float, _opt(MAP, "budget")] = 1.0,
+    dataset: Annotated[str, _opt(MAP, "dataset")] = "lidar-sim",
+    split: Annotated[str, _opt(MAP, "split")] = "test",
+    samples: Annotated[int | None, _opt(MAP, "samples")] = None,
+    compare: Annotated[str | None, _opt(MAP, "compare")] = None,
+    attack_param: Annotated[list[str] | None, _opt(MAP, "attack_param")] = None,
+    dataset_param: Annotated[list[str] | None, _opt(MAP, "dataset_param")] = None,
+    out: Annotated[str, _opt(MAP, "out")] = "runs/map",
+    executor: Annotated[str, _opt(MAP, "executor")] = "local",
+    quiet: Annotated[bool, _opt(MAP, "quiet", "--quiet")] = False,
 ) -> None:
     """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
     out_dir: Path | None = None
@@ -640,12 +583,19 @@ def danger_map(
         from icpbench.harness.runner import RunConfig
         from icpbench.harness.runner import run as run_grid
 
-        out = out_dir = _out_dir(out)
+        o = MAP.parse(dict(attack=attack, budget=budget, dataset=dataset, split=split,
+                           samples=samples, compare=compare,
+                           attack_param=_nested(attack_param, "--attack-param"),
+                           dataset_param=_flat(dataset_param, "--dataset-param"), out=out,
+                           executor=executor, quiet=quiet))
+        from icpbench.harness.outputs import claim
+
+        out = out_dir = claim(o.out, "map")
+        attack, budget, compare = o.attack, o.budget, o.compare
         attacks = [attack] + ([compare] if compare else [])
-        cfg = RunConfig(dataset=dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
-                        samples=samples, split=split, executor=executor,
-                        attack_params=_nested(attack_param, "--attack-param"),
-                        dataset_params=_flat(dataset_param, "--dataset-param"))
+        cfg = RunConfig(dataset=o.dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
+                        samples=o.samples, split=o.split, executor=o.executor,
+                        attack_params=o.attack_param, dataset_params=o.dataset_param)
         run_grid(cfg, out / "run", progress=not quiet)
         summary = write_maps(load_results(out / "run"), attack, budget, out, compare)
         for name in attacks:
@@ -667,35 +617,22 @@ def danger_map(
 
 @app.command("validate-map")
 def validate_map(
-    dataset: Annotated[str, typer.Option(help="A route dataset (lidar-sim, kitti, boreas).")]
-    = "lidar-sim",
-    split: Annotated[str, typer.Option(help="Dataset split.")] = "test",
-    samples: Annotated[int | None, typer.Option(
-        help="Places: the first K scans of the split (a resumed run may grow it); 0 = all.")] = 96,
-    attacks: Annotated[str, typer.Option(
-        help="Comma-separated attacks whose error at --budget is the worst case.")]
-    = "generator,sector-iter",
-    budget: Annotated[float, typer.Option(help="Budget λ of the attacks and the sector estimate "
-                                                "(metres).")] = 1.0,
-    corruptions: Annotated[str, typer.Option(help="'all' or comma-separated corruptions.")]
-    = "all",
-    severities: Annotated[str, typer.Option(help="Corruption levels, comma-separated 1..5.")]
-    = "1,2,3,4,5",
-    fail_m: Annotated[float, typer.Option(
-        help="A place fails when its largest error over corruptions at a severity exceeds this "
-             "(metres).")] = 0.5,
-    headline_severity: Annotated[int, typer.Option(
-        help="Severity whose failures the route figure rings.")] = 3,
-    bootstrap: Annotated[int, typer.Option(help="Bootstrap resamples of the intervals.")] = 1000,
-    route: Annotated[str, typer.Option(help="A name for the route in the summary and figure.")]
-    = "",
-    attack_param: Annotated[list[str] | None, typer.Option(help="NAME.KEY=VALUE.")] = None,
-    dataset_param: Annotated[list[str] | None, typer.Option(help="KEY=VALUE.")] = None,
-    executor: Annotated[str, typer.Option(help="local, processes or ray; results do not depend on it.")]
-    = "local",
-    out: Annotated[str, typer.Option(help="Output folder (re-run to resume).")]
-    = "runs/danger-validation",
-    quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
+    dataset: Annotated[str, _opt(VM, "dataset")] = "lidar-sim",
+    split: Annotated[str, _opt(VM, "split")] = "test",
+    samples: Annotated[int, _opt(VM, "samples")] = 96,
+    attacks: Annotated[str, _opt(VM, "attacks")] = "generator,sector-iter",
+    budget: Annotated[float, _opt(VM, "budget")] = 1.0,
+    corruptions: Annotated[str, _opt(VM, "corruptions")] = "all",
+    severities: Annotated[str, _opt(VM, "severities")] = "1,2,3,4,5",
+    fail_m: Annotated[float, _opt(VM, "fail_m")] = 0.5,
+    headline_severity: Annotated[int, _opt(VM, "headline_severity")] = 3,
+    bootstrap: Annotated[int, _opt(VM, "bootstrap")] = 1000,
+    route: Annotated[str, _opt(VM, "route")] = "",
+    attack_param: Annotated[list[str] | None, _opt(VM, "attack_param")] = None,
+    dataset_param: Annotated[list[str] | None, _opt(VM, "dataset_param")] = None,
+    executor: Annotated[str, _opt(VM, "executor")] = "local",
+    out: Annotated[str, _opt(VM, "out")] = "runs/danger-validation",
+    quiet: Annotated[bool, _opt(VM, "quiet", "--quiet")] = False,
 ) -> None:
     """Do danger maps predict real trouble? Worst cases and cheap predictors against the errors of
     realistic corruptions, place by place: Spearman and ROC AUC with bootstrap intervals, a route
@@ -704,15 +641,20 @@ def validate_map(
     try:
         from icpbench.analysis.danger_validation import ValidationSettings, validate
 
-        out_dir = _out_dir(out)
+        o = VM.parse(dict(dataset=dataset, split=split, samples=samples, attacks=attacks,
+                          budget=budget, corruptions=corruptions, severities=severities,
+                          fail_m=fail_m, headline_severity=headline_severity,
+                          bootstrap=bootstrap, route=route,
+                          attack_param=_nested(attack_param, "--attack-param"),
+                          dataset_param=_flat(dataset_param, "--dataset-param"),
+                          executor=executor, out=out, quiet=quiet))
+        out_dir = Path(o.out)
         settings = ValidationSettings(
-            dataset=dataset, split=split, samples=None if samples == 0 else samples,
-            dataset_params=_flat(dataset_param, "--dataset-param"),
-            attacks=[a.strip() for a in attacks.split(",") if a.strip()], budget_m=budget,
-            corruptions=[c.strip() for c in corruptions.split(",") if c.strip()],
-            severities=_ints(severities, "--severities"), fail_m=fail_m,
-            headline_severity=headline_severity, n_boot=bootstrap, executor=executor,
-            attack_params=_nested(attack_param, "--attack-param"))
+            dataset=o.dataset, split=o.split, samples=None if o.samples == 0 else o.samples,
+            dataset_params=o.dataset_param, attacks=list(o.attacks), budget_m=o.budget,
+            corruptions=list(o.corruptions), severities=list(o.severities), fail_m=o.fail_m,
+            headline_severity=o.headline_severity, n_boot=o.bootstrap, executor=o.executor,
+            attack_params=o.attack_param)
         command = "icpbench " + " ".join(sys.argv[1:]) if sys.argv[1:] else "icpbench validate-map"
         summary = validate(settings, out_dir, route=route, command=command, progress=not quiet)
         block = summary["by_severity"][str(headline_severity)]
@@ -732,14 +674,12 @@ def validate_map(
 
 @app.command("object-study")
 def object_study(
-    model: Annotated[list[str], typer.Option(help="NAME=CHECKPOINT, repeatable.")],
-    budget: Annotated[float, typer.Option(help="Budget (normalised units).")] = 0.05,
-    objects: Annotated[int, typer.Option(help="Held-out objects in the table.")] = 24,
-    figure_objects: Annotated[int, typer.Option(help="Objects shown in the figure.")] = 4,
-    out: Annotated[Path, typer.Option(help="Output directory.")] = Path("runs/object-study"),
-    soft_bound: Annotated[bool, typer.Option(
-        help="Also run each model unprojected (the paper's soft bound; may exceed the budget).")]
-    = False,
+    model: Annotated[list[str], _opt(OS, "model")],
+    budget: Annotated[float, _opt(OS, "budget")] = 0.05,
+    objects: Annotated[int, _opt(OS, "objects")] = 24,
+    figure_objects: Annotated[int, _opt(OS, "figure_objects")] = 4,
+    out: Annotated[str, _opt(OS, "out")] = "runs/object-study",
+    soft_bound: Annotated[bool, _opt(OS, "soft_bound")] = False,
 ) -> None:
     """Paper figure 4: objects attacked by generators trained with different loss weights
     (every attack within the budget unless --soft-bound adds the unprojected rows)."""
@@ -747,21 +687,20 @@ def object_study(
     from icpbench.harness.report import render
 
     try:
-        if not budget > 0:
-            raise typer.BadParameter(f"--budget must be > 0, got {budget}")
-        if objects < 1:
-            raise typer.BadParameter(f"--objects must be >= 1, got {objects}")
-        if not 1 <= figure_objects <= objects:  # the figure shows at least one object
-            raise typer.BadParameter(f"--figure-objects must be between 1 and --objects "
-                                     f"({objects}), got {figure_objects}")
-        models = dict(_kv(m, "--model") for m in model)
+        o = OS.parse(dict(model=dict(_kv(m, "--model") for m in model), budget=budget,
+                          objects=objects, figure_objects=figure_objects, out=out,
+                          soft_bound=soft_bound))
+        models, budget, objects, figure_objects = o.model, o.budget, o.objects, o.figure_objects
+        from icpbench.harness.outputs import check_owner, claim, write_csv, write_file
+
+        check_owner(o.out, "object-study")  # before the study: a refused folder costs nothing
         rows, clouds, _ = study({k: str(v) for k, v in models.items()}, budget, objects,
                                 figure_objects, soft_bound=soft_bound)
-        out.mkdir(parents=True, exist_ok=True)
-        rows.to_csv(out / "object_study_rows.csv", index=False)
+        out = claim(o.out, "object-study")
+        write_csv(out / "object_study_rows.csv", rows, index=False)
         table = summary_table(rows)
-        table.to_csv(out / "object_study_table.csv", index=False)
-        (out / "object_study_table.md").write_text(render(table.round(4), "md") + "\n")
+        write_csv(out / "object_study_table.csv", table, index=False)
+        write_file(out / "object_study_table.md", render(table.round(4), "md") + "\n")
         figure(rows, clouds, out / "object_study.png", budget)
         typer.echo(render(table.round(4), "md"))
         typer.echo(f"written to {out}")
@@ -771,84 +710,60 @@ def object_study(
 
 @app.command()
 def train(
-    preset: Annotated[str, typer.Option(
-        help="quick-lidar, quick-lidar-soft, paper-lidar, quick-objects, paper-objects.")]
-    = "quick-lidar",
-    out: Annotated[str, typer.Option(help="Output directory (re-run to resume).")]
-    = "runs/train",
-    budgets: Annotated[str | None, typer.Option(help="λ values; several = one conditioned model.")]
-    = None,
-    weights: Annotated[str | None, typer.Option(help="xy, x-only or theta-only.")] = None,
-    epochs: Annotated[int | None, typer.Option(help="Attack-phase epochs.")] = None,
-    pretrain_epochs: Annotated[int | None, typer.Option(help="Pretraining epochs.")] = None,
-    train_samples: Annotated[int | None, typer.Option(help="Training samples per epoch.")] = None,
-    eval_samples: Annotated[int | None, typer.Option(help="Held-out evaluation samples.")] = None,
-    batch_size: Annotated[int | None, typer.Option(help="Batch size.")] = None,
-    lr: Annotated[float | None, typer.Option(help="Learning rate.")] = None,
-    device: Annotated[str | None, typer.Option(help="cpu or cuda.")] = None,
-    threads: Annotated[int | None, typer.Option(help="torch threads.")] = None,
-    max_minutes: Annotated[float | None, typer.Option(help="Stop after this much training.")]
-    = None,
-    dataset: Annotated[str | None, typer.Option(
-        help="Training data (a registered dataset, e.g. kitti with --dataset-param root=...); "
-             "default: the preset's.")] = None,
-    dataset_param: Annotated[list[str] | None, typer.Option(help="Dataset KEY=VALUE.")] = None,
-    strict: Annotated[bool, typer.Option(
-        help="Project displacements onto the λ-balls inside training (beyond the paper).")]
-    = False,
-    generator_param: Annotated[list[str] | None, typer.Option(
-        help="Generator config KEY=VALUE (e.g. output=bounded, conditioned=false).")] = None,
-    adv_per_budget: Annotated[bool | None, typer.Option(
-        "--adv-per-budget/--no-adv-per-budget",
-        help="Divide each sample's adversarial loss by its λ.")] = None,
-    init: Annotated[str | None, typer.Option(
-        help="Start from this checkpoint (fine-tuning, e.g. one model per λ).")] = None,
-    icp_preset: Annotated[str | None, typer.Option(
-        help="Surrogate ICP during training: lidar-train (25 iterations), lidar (100), ...")]
-    = None,
-    icp_backprop: Annotated[str | None, typer.Option(
-        help="unrolled (dICP, the paper) or implicit (implicit-function gradient of the final "
-             "pose; beyond the paper).")] = None,
-    alpha: Annotated[float | None, typer.Option(
-        help="Weight of the adversarial loss (eq. 2).")] = None,
-    sector_iter_param: Annotated[list[str] | None, typer.Option(
-        help="Settings KEY=VALUE of the iterated sector attack that makes a prior='sector-iter' "
-             "model's prior during training (iterations, step_size, icp_iterations, "
-             "icp_nn_reuse, d_max).")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", help="No progress bar.")] = False,
+    preset: Annotated[str, _opt(TR, "preset")] = "quick-lidar",
+    out: Annotated[str, _opt(TR, "out")] = "runs/train",
+    budgets: Annotated[str | None, _opt(TR, "budgets")] = None,
+    weights: Annotated[str | None, _opt(TR, "weights")] = None,
+    epochs: Annotated[int | None, _opt(TR, "epochs")] = None,
+    pretrain_epochs: Annotated[int | None, _opt(TR, "pretrain_epochs")] = None,
+    train_samples: Annotated[int | None, _opt(TR, "train_samples")] = None,
+    eval_samples: Annotated[int | None, _opt(TR, "eval_samples")] = None,
+    batch_size: Annotated[int | None, _opt(TR, "batch_size")] = None,
+    lr: Annotated[float | None, _opt(TR, "lr")] = None,
+    device: Annotated[str | None, _opt(TR, "device")] = None,
+    threads: Annotated[int | None, _opt(TR, "threads")] = None,
+    max_minutes: Annotated[float | None, _opt(TR, "max_minutes")] = None,
+    dataset: Annotated[str | None, _opt(TR, "dataset")] = None,
+    dataset_param: Annotated[list[str] | None, _opt(TR, "dataset_param")] = None,
+    strict: Annotated[bool, _opt(TR, "strict")] = False,
+    generator_param: Annotated[list[str] | None, _opt(TR, "generator_param")] = None,
+    adv_per_budget: Annotated[bool | None, _opt(
+        TR, "adv_per_budget", "--adv-per-budget/--no-adv-per-budget")] = None,
+    init: Annotated[str | None, _opt(TR, "init")] = None,
+    icp_preset: Annotated[str | None, _opt(TR, "icp_preset")] = None,
+    icp_backprop: Annotated[str | None, _opt(TR, "icp_backprop")] = None,
+    alpha: Annotated[float | None, _opt(TR, "alpha")] = None,
+    sector_iter_param: Annotated[list[str] | None, _opt(TR, "sector_iter_param")] = None,
+    quiet: Annotated[bool, _opt(TR, "quiet", "--quiet")] = False,
 ) -> None:
     """Train a generator through the differentiable ICP; checkpoints every epoch, resumable."""
     try:
         from icpbench.learning.training import train as run_training
         from icpbench.learning.training import train_config
 
-        for flag, v, lo in (("--epochs", epochs, 0), ("--pretrain-epochs", pretrain_epochs, 0),
-                            ("--train-samples", train_samples, 1), ("--eval-samples", eval_samples, 1),
-                            ("--batch-size", batch_size, 1), ("--threads", threads, 1)):
-            if v is not None and v < lo:
-                raise typer.BadParameter(f"{flag} must be >= {lo}, got {v}")
-        for flag, x in (("--lr", lr), ("--max-minutes", max_minutes)):
-            if x is not None and not (x > 0 and math.isfinite(x)):
-                raise typer.BadParameter(f"{flag} must be a positive number, got {x}")
-        if alpha is not None and not (alpha >= 0 and math.isfinite(alpha)):
-            raise typer.BadParameter(f"--alpha must be a number >= 0, got {alpha}")
-        out_dir = _out_dir(out)
+        o = TR.parse(dict(
+            preset=preset, out=out, budgets=budgets, weights=weights, epochs=epochs,
+            pretrain_epochs=pretrain_epochs, train_samples=train_samples,
+            eval_samples=eval_samples, batch_size=batch_size, lr=lr, device=device,
+            threads=threads, max_minutes=max_minutes, dataset=dataset,
+            dataset_param=_flat(dataset_param, "--dataset-param"), strict=strict,
+            generator_param=_flat(generator_param, "--generator-param"),
+            adv_per_budget=adv_per_budget, init=init, icp_preset=icp_preset,
+            icp_backprop=icp_backprop, alpha=alpha,
+            sector_iter_param=_flat(sector_iter_param, "--sector-iter-param"), quiet=quiet))
+        out_dir, preset = Path(o.out), o.preset
         over = {k: v for k, v in dict(
-            weights=weights, epochs=epochs, pretrain_epochs=pretrain_epochs,
-            train_samples=train_samples, eval_samples=eval_samples, batch_size=batch_size, lr=lr,
-            device=device, threads=threads, max_minutes=max_minutes,
-            strict=strict or None, adv_per_budget=adv_per_budget,
-            init_checkpoint=init, icp_preset=icp_preset,
-            icp_backprop=icp_backprop, dataset=dataset, alpha=alpha).items() if v is not None}
-        if sector_iter_param:
-            preset_si = train_config(preset).sector_iter
-            over["sector_iter"] = {**preset_si, **_flat(sector_iter_param, "--sector-iter-param")}
-        if generator_param:
-            over["generator_overrides"] = _flat(generator_param, "--generator-param")
-        if budgets is not None:
-            over["budgets"] = _budgets(budgets)
-        if dataset_param:
-            over["dataset_params"] = _flat(dataset_param, "--dataset-param")
+            weights=o.weights, epochs=o.epochs, pretrain_epochs=o.pretrain_epochs,
+            train_samples=o.train_samples, eval_samples=o.eval_samples,
+            batch_size=o.batch_size, lr=o.lr, device=o.device, threads=o.threads,
+            max_minutes=o.max_minutes, strict=o.strict or None,
+            adv_per_budget=o.adv_per_budget, init_checkpoint=o.init, icp_preset=o.icp_preset,
+            icp_backprop=o.icp_backprop, dataset=o.dataset, alpha=o.alpha,
+            budgets=None if o.budgets is None else list(o.budgets),
+            dataset_params=o.dataset_param or None,
+            generator_overrides=o.generator_param or None).items() if v is not None}
+        if o.sector_iter_param:
+            over["sector_iter"] = {**train_config(preset).sector_iter, **o.sector_iter_param}
         card = run_training(train_config(preset, **over), out_dir, progress=not quiet,
                             log=None if quiet else typer.echo)
         typer.echo(f"checkpoint: {out_dir}/generator.pt")

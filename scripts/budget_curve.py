@@ -18,6 +18,7 @@ from pathlib import Path
 import pandas as pd
 
 from icpbench.analysis.budget_curve import budget_curve
+from icpbench.harness.outputs import save_figure, write_csv, write_file
 from icpbench.harness.results import load_results, read_manifest
 
 
@@ -36,7 +37,7 @@ def main() -> None:
         curves.append(c)
     curve = pd.concat(curves, ignore_index=True)
     out = args.runs[0].parent
-    curve.to_csv(out / "budget_curve.csv", index=False)
+    write_csv(out / "budget_curve.csv", curve, index=False)
     lines = ["# Worst case against the search budget", "",
              "Mean `trans_err_xy` [m] of the `ensemble` had its search stopped after q queries "
              "(q = 0: the best of the members before the search: uniform, normal, sector, "
@@ -49,7 +50,7 @@ def main() -> None:
         lines += [f"| {int(r.queries)} | {r['mean']:.2f} | {r['median']:.2f} | {r.over_uniform:.2f} |"
                   for _, r in g.iterrows()]
         lines.append("")
-    (out / "budget_curve.md").write_text("\n".join(lines))
+    write_file(out / "budget_curve.md", "\n".join(lines))
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,7 +68,7 @@ def main() -> None:
     ax.set_title("Worst case against the query budget")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(out / "budget_curve.png", dpi=120)
+    save_figure(fig, out / "budget_curve.png", dpi=120)
     print(f"wrote {out / 'budget_curve.md'}, .csv, .png")
 
 

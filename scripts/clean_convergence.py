@@ -19,7 +19,6 @@ the two run folders ``OUT/runs/{defaults,variants}`` (each with the runner's ``r
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import shutil
 import subprocess
@@ -29,6 +28,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from icpbench.harness.outputs import write_csv, write_file, write_json
 from icpbench.harness.runner import git_commit, package_versions
 
 TARGETS = ["p2plane", "p2point", "open3d", "kiss-icp", "small-gicp", "kiss-icp-replica",
@@ -89,7 +89,7 @@ def main() -> None:
         parts.append(df)
     rows = pd.concat(parts, ignore_index=True)
     table = summarise(rows)
-    table.to_csv(args.out / "clean_convergence.csv", index=False)
+    write_csv(args.out / "clean_convergence.csv", table, index=False)
     md = ["# Clean convergence of the ICP targets (lidar settings)", "",
           f"{args.samples} clean `lidar-sim` test scans (attack `none`), each target with its "
           "registered defaults (variants: the setting in brackets). `converged_pct`: status `ok`; "
@@ -99,14 +99,14 @@ def main() -> None:
           "Command: `OMP_NUM_THREADS=1 python scripts/clean_convergence.py --out "
           f"{args.out}`, which runs:", ""]
     md += [f"    icpbench {' '.join(c)}" for c in cmds.values()]
-    (args.out / "clean_convergence.md").write_text("\n".join(md) + "\n")
+    write_file(args.out / "clean_convergence.md", "\n".join(md) + "\n")
     manifest = {"script": "scripts/clean_convergence.py", "samples": args.samples,
                 "commands": {k: ["icpbench", *v] for k, v in cmds.items()},
                 "git": git, "versions": package_versions(),
                 "machine": {"platform": platform.platform(), "processor": platform.processor()},
                 "wall_s": round(time.time() - t0, 1),
                 "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
-    (args.out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    write_json(args.out / "manifest.json", manifest)
     print(table.to_markdown(index=False))
 
 

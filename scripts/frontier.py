@@ -28,6 +28,8 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from icpbench.harness.outputs import write_csv
+
 CONFIG_FILE = Path(__file__).with_name("frontier.yaml")
 
 
@@ -168,7 +170,7 @@ def main() -> None:
     res = summarise(out, list(CONFIGS))
     if res.empty:
         sys.exit(f"error: no run folders with results under {out / 'runs'}")
-    res.to_csv(out / "frontier.csv", index=False, float_format="%.4g")
+    write_csv(out / "frontier.csv", res, index=False, float_format="%.4g")
     plot(res, out / "frontier.png")
     print(res.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from icpbench.harness.outputs import write_file
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -86,7 +88,7 @@ def main() -> None:
         shown = [c for c in t.columns if c == "Method" or "Trans Pose Error" in c or "% Ours" in c]
         lines += [f"## Table 1 ({args.table_title})", "",
                   t[shown].to_markdown(index=False), ""]
-    (d / "MODEL_CARD.md").write_text("\n".join(lines))
+    write_file(d / "MODEL_CARD.md", "\n".join(lines))
     print(f"wrote {d / 'MODEL_CARD.md'}")
 
 

@@ -22,7 +22,6 @@ Writes ``OUT/agreement.csv`` (one row per pair x condition x scan), ``OUT/summar
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -36,6 +35,7 @@ from icpbench.core.mapindex import MapIndex
 from icpbench.core.se3 import pose_error_components
 from icpbench.core.types import Batch
 from icpbench.datasets.lidar_sim import LidarSimDataset
+from icpbench.harness.outputs import write_csv, write_file, write_json
 from icpbench.harness.runner import build_attack, build_target, git_commit, package_versions
 
 #: pair name -> (black-box entry point, its settings)
@@ -130,7 +130,7 @@ def main() -> None:
                   flush=True)
     rows = pd.read_csv(csv)
     table = summarise(rows)
-    table.to_csv(args.out / "summary.csv", index=False)
+    write_csv(args.out / "summary.csv", table, index=False)
     md = ["# Black-box ICP targets against their differentiable replicas", "",
           f"{args.samples} `lidar-sim` test scans; conditions: clean (`none`) and the `uniform`, "
           f"`normal` and `sector` attacks at lambda = {BUDGET_M:g} m (seed {args.seed}, not strict). "
@@ -141,7 +141,7 @@ def main() -> None:
           "scan (one thread, shared 2-core machine).", "", table.to_markdown(index=False), "",
           f"Command: `OMP_NUM_THREADS=1 python scripts/replica_agreement.py --samples "
           f"{args.samples} --out {args.out}`", ""]
-    (args.out / "agreement.md").write_text("\n".join(md))
+    write_file(args.out / "agreement.md", "\n".join(md))
     manifest = {"script": "scripts/replica_agreement.py", "samples": args.samples,
                 "seed": args.seed, "budget_m": BUDGET_M, "conditions": list(CONDITIONS),
                 "pairs": {k: {"black_box": v[0], "params": v[1],
@@ -153,7 +153,7 @@ def main() -> None:
                 "machine": {"platform": platform.platform(), "processor": platform.processor()},
                 "wall_s_this_invocation": round(time.time() - t_start, 1),
                 "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
-    (args.out / "manifest.json").write_text(json.dumps(manifest, indent=2, default=str) + "\n")
+    write_json(args.out / "manifest.json", manifest)
     print(table.to_markdown(index=False))
 
 

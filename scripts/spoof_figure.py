@@ -47,7 +47,7 @@ def main() -> None:
     from icpbench.attacks.spoof import SpoofAttack
     from icpbench.core import registry
     from icpbench.core.types import Batch
-    from icpbench.harness.results import write_json_atomic
+    from icpbench.harness.outputs import save_figure, write_json
     from icpbench.harness.runner import build_target, git_commit, package_versions
     from icpbench.targets.oracle import QueryOracle
 
@@ -106,9 +106,9 @@ def main() -> None:
                  f"{float(out.extra['spoof_offset_m'][0]):.2f} m")
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "spoof.png", dpi=110)
+    save_figure(fig, args.out / "spoof.png", dpi=110)
     plt.close(fig)
-    write_json_atomic(args.out / "manifest.json", {
+    write_json(args.out / "manifest.json", {
         "command": "python scripts/spoof_figure.py " + " ".join(
             f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()),
         "sample": sample.id, "target": args.target, "budget_m": args.budget,

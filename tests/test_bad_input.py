@@ -368,9 +368,9 @@ def _cli_cases(tmp: Path, ckpt: dict) -> list[tuple[list[str], str]]:
         (RUN + ["--budgets", "-1"], "budget must be a positive finite number"),
         (RUN + ["--budgets", "0"], "budget must be a positive finite number"),
         (RUN + ["--budgets", "nan"], "budget must be a positive finite number"),
-        (RUN + ["--budgets", "1,x"], "--budgets must be comma-separated numbers"),
-        (RUN + ["--seed", "x"], "--seed must be comma-separated integers"),
-        (RUN + ["--threads", "0"], "--threads must be >= 1"),
+        (RUN + ["--budgets", "1,x"], "budget must be a number, got 'x'"),
+        (RUN + ["--seed", "x"], "seed must be an integer, got 'x'"),
+        (RUN + ["--threads", "0"], "--threads must be an integer >= 1 and <= 1024, got 0"),
         (RUN + ["--target-param", "p2plane.bogus=1"],
          "unknown setting(s) 'bogus' for target 'p2plane'; valid: backprop, cauchy_c, "),
         (["run", "--dataset", "kitti"],
@@ -388,7 +388,7 @@ def _cli_cases(tmp: Path, ckpt: dict) -> list[tuple[list[str], str]]:
         *[(generator + [f"generator.checkpoint={ckpt[k]}", "--out", str(tmp / k)], needle)
           for k, needle in CHECKPOINT_ERRORS],
         (["train", "--icp-backprop", "bogus", "--out", str(tmp / "tb")],
-         "backprop must be 'unrolled' or 'implicit'"),
+         "--icp-backprop must be one of unrolled, implicit"),
         (["train", "--icp-preset", "bogus", "--out", str(tmp / "tp")], "unknown ICP preset 'bogus'"),
     ] + ([] if torch.cuda.is_available() else
          [(["train", "--device", "cuda", "--out", str(tmp / "t")], "sees no CUDA GPU")])

@@ -78,8 +78,8 @@ SMALL_CONFIG = ("dataset: synthetic\ndataset_params: {n_samples: 1, n_scan: 100,
     ("seeds: 1.5\n", "setting 'seeds' must be"),
     ("dataset_params: abc\n", "setting 'dataset_params' must be a mapping"),
     ("attack_params: [1, 2]\n", "setting 'attack_params' must be a mapping of plugin names"),
-    ("dataset_seed: -1\n", "setting 'dataset_seed' must be an integer from 0"),
-    ("samples: 0\n", "setting 'samples' must be an integer from 1"),
+    ("dataset_seed: -1\n", "setting 'dataset_seed' must be an integer >= 0, got -1"),
+    ("samples: 0\n", "setting 'samples' must be an integer >= 1 or null, got 0"),
     ("threads: '2'\n", "setting 'threads' must be an integer"),
     ("attacks: 5\n", "setting 'attacks' must be"),
 ])
@@ -135,11 +135,11 @@ TRAIN = ["train", "--preset", "quick-objects", "--train-samples", "2", "--eval-s
 
 
 @pytest.mark.parametrize(("extra", "needle"), [
-    (["--budgets", ""], "--budgets has no numbers"),
+    (["--budgets", ""], "(--budgets) must be a non-empty list"),
     (["--budgets", "1e300"], "budget must be a positive finite number of metres <="),
-    (["--eval-samples", "0"], "--eval-samples must be >= 1"),
+    (["--eval-samples", "0"], "--eval-samples must be an integer >= 1"),
     (["--epochs", "0"], "--epochs + --pretrain-epochs must be >= 1"),
-    (["--lr", "1e30"], "--lr must be a number in [0, 1]"),
+    (["--lr", "1e30"], "--lr must be a number >= 0 and <= 1"),
     (["--generator-param", "bogus=1"], "unknown generator setting(s) 'bogus' (--generator-param); "
                                         "valid: "),
 ])
@@ -151,7 +151,7 @@ def test_train_refuses_up_front_and_writes_nothing(tmp_path, extra, needle, user
 
 def test_object_study_refuses_zero_figure_objects(user_error):
     user_error(cli.invoke(app, ["object-study", "--model", "a=x.pt", "--figure-objects", "0"]),
-               "--figure-objects must be between 1 and --objects")
+               "--figure-objects must be an integer >= 1")
 
 
 def test_train_refused_by_its_data_leaves_no_configuration_behind(tmp_path, user_error):

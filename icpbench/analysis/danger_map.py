@@ -168,17 +168,16 @@ def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path
                compare: str | None = None) -> dict:
     """Write the CSVs and PNGs of the danger map (and the comparison, if ``compare``); return the
     summary (AUC open-vs-dense, pass rank correlation, file list), also saved as summary.json."""
-    from icpbench.harness.results import write_json_atomic
+    from icpbench.harness.outputs import write_csv, write_json
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     summary: dict = {"attack": attack, "budget": budget, "files": []}
     for name in [attack] + ([compare] if compare else []):
         loc = location_errors(df, name, budget)
         mean = per_location_mean(loc)
         stem = safe_component(name)
-        loc.to_csv(out / f"{stem}_locations.csv", index=False)
-        mean.to_csv(out / f"{stem}_locations_mean.csv", index=False)
+        write_csv(out / f"{stem}_locations.csv", loc, index=False)
+        write_csv(out / f"{stem}_locations_mean.csv", mean, index=False)
         files = [str(plot_route(mean, out / f"{stem}_map.png",
                                 title=f"{name}, λ = {budget:g} m: mean over passes"))]
         if "pass" in loc:
@@ -200,11 +199,11 @@ def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path
     if compare:
         cmp = comparison(df, attack, compare, budget)
         cstem = f"comparison_{safe_component(attack)}_vs_{safe_component(compare)}"
-        cmp.to_csv(out / f"{cstem}.csv", index=False)
+        write_csv(out / f"{cstem}.csv", cmp, index=False)
         plot_comparison(cmp, out / f"{cstem}.png", attack, compare)
         q1, med, q3 = np.nanpercentile(cmp["difference"], [25, 50, 75])
         summary["comparison"] = {"median": float(med), "q1": float(q1), "q3": float(q3),
                                  "share_ours_larger": float((cmp["difference"] > 0).mean())}
         summary["files"] += [f"{cstem}.csv", f"{cstem}.png"]
-    write_json_atomic(out / "summary.json", summary)
+    write_json(out / "summary.json", summary)
     return summary

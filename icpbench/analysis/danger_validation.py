@@ -240,12 +240,13 @@ def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = 
         InputError: bad settings, or results that lack a quantity of the settings.
     """
     from icpbench.analysis.validation_figure import plot_validation_route
-    from icpbench.harness.results import load_results, write_json_atomic
+    from icpbench.harness.outputs import claim, write_csv, write_file, write_json
+    from icpbench.harness.results import load_results
     from icpbench.harness.runner import git_commit, load_dataset, package_versions
     from icpbench.harness.runner import run as run_grid
 
-    out = Path(out_dir)
     cfg = settings.run_config().validate()
+    out = claim(out_dir, "validate-map")
     t0 = time.perf_counter()
     run_grid(cfg, out / "run", progress=progress)
     t_grid = time.perf_counter() - t0
@@ -262,8 +263,7 @@ def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = 
     quantities = quantity_columns(settings.attacks)
     by_sev = statistics(places, quantities, cfg.severities, settings.fail_m, settings.n_boot,
                         settings.seed)
-    out.mkdir(parents=True, exist_ok=True)
-    places.to_csv(out / "places.csv")
+    write_csv(out / "places.csv", places)
     summary = {
         "route": route or f"{settings.dataset} {settings.split}",
         "places": int(len(places)),
@@ -283,12 +283,12 @@ def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = 
         plot_validation_route(places, quantities, settings.headline_severity, settings.fail_m,
                               out / "route.png", title=summary["route"])
         summary["files"].insert(3, "route.png")
-    write_json_atomic(out / "summary.json", summary)
-    (out / "summary.md").write_text(summary_markdown(summary) + "\n")
+    write_json(out / "summary.json", summary)
+    write_file(out / "summary.md", summary_markdown(summary) + "\n")
     manifest = {"command": command, "settings": asdict(settings), "run_config": asdict(cfg),
                 "git": git_commit(), "versions": package_versions(),
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                 "seconds": {"grid_this_call": round(t_grid, 1), "predictors": round(t_pred, 1),
                             "total_this_call": round(time.perf_counter() - t0, 1)}}
-    write_json_atomic(out / "manifest.json", manifest)
+    write_json(out / "manifest.json", manifest)
     return summary

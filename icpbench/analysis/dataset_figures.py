@@ -31,6 +31,7 @@ from icpbench.core.filenames import safe_component  # noqa: E402
 from icpbench.core.types import Sample  # noqa: E402
 from icpbench.datasets import submaps as sm  # noqa: E402
 from icpbench.datasets.base import Dataset  # noqa: E402
+from icpbench.harness.outputs import save_figure
 
 PLACE_COLOURS = {"suburb": "#d62728", "parking": "#ff7f0e", "field": "#bcbd22",
                  "highway": "#1f77b4", "underpass": "#9467bd"}
@@ -128,7 +129,7 @@ def _town_figure(ds: Any, path: Path) -> None:
     ax.set_title(f"lidar-sim town ({_town_name(ds)}): {route.length / 1000:.2f} km loop, "
                  f"{ds.n_vertices} locations per pass; grey = structures (darker = taller)")
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -191,7 +192,7 @@ def towns_figure(datasets: list[Any], path: str | Path) -> Path:
                      f"{z.max():+.1f} m, camber {100 * ds.ground.camber:.1f} %", fontsize=10)
     fig.tight_layout(rect=(0, 0, 0.94, 1))
     fig.colorbar(im, cax=fig.add_axes((0.95, 0.2, 0.01, 0.6)), label="structure height above ground (m)")
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -236,7 +237,7 @@ def sensors_figure(datasets: list[Any], path: str | Path, *, pass_id: int = 1, f
                  f"{radius_m:g} m")
     fig.tight_layout(rect=(0, 0, 0.93, 0.95))
     fig.colorbar(sc, cax=fig.add_axes((0.945, 0.15, 0.01, 0.65)), label="z in the sensor frame (m)")
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -267,7 +268,7 @@ def _positions_figure(ds: Dataset, path: Path, max_samples: int) -> None:
     ax.set_title(f"{ds.name}: positions of {len(samples)} of {len(ds)} samples")
     ax.legend(fontsize=8, title=key)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -292,5 +293,5 @@ def _scan_figure(sample: Sample, path: Path, radius_m: float = 45.0) -> None:
     extra = ", ".join(f"{k}={meta[k]}" for k in ("stretch", "place", "pass", "frame") if k in meta)
     fig.suptitle(f"{sample.id}: scan on its submap, vehicle frame ({extra})")
     fig.tight_layout(rect=(0, 0, 1, 0.96))
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)

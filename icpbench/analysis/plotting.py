@@ -28,10 +28,10 @@ def pyplot() -> Any:
 
 def save(fig: Any, path: str | Path, dpi: int = 120) -> Path:
     """Lay out, write ``fig`` to ``path`` (creating folders) and close it."""
+    from icpbench.harness.outputs import save_figure
+
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    path = save_figure(fig, path, dpi=dpi)
     pyplot().close(fig)
     return path
 

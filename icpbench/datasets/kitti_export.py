@@ -23,6 +23,7 @@ from icpbench.core.errors import InputError
 from icpbench.core.filenames import plain_name
 from icpbench.datasets import submaps as sm
 from icpbench.datasets.lidar_model import cast_scan
+from icpbench.harness.outputs import write_file
 
 #: T_cam0_velo of the writer: camera z forward = lidar x, camera x right = -lidar y, camera y down
 #: = -lidar z, the camera 0.27 m ahead of and 0.08 m below the lidar (like KITTI's rig).
@@ -64,8 +65,8 @@ def write_kitti_sequence(ds: Any, root: str | Path, *, s_start_m: float, n_frame
         rec[:, :3] = scan.points
         rec.tofile(seq / "velodyne" / f"{k:06d}.bin")
         lines.append(_row(Tr @ sm.inv(T_w[0]) @ T @ Tr_inv))
-    (root / "poses" / f"{sequence}.txt").write_text("\n".join(lines) + "\n")
+    write_file(root / "poses" / f"{sequence}.txt", "\n".join(lines) + "\n")
     calib = [f"P{i}: " + _P.format(tx=tx) for i, tx in enumerate(("0", "-3.861448e+02", "4.538225e+01",
                                                                     "-3.372877e-01"))]
-    (seq / "calib.txt").write_text("\n".join([*calib, "Tr: " + _row(Tr)]) + "\n")
+    write_file(seq / "calib.txt", "\n".join([*calib, "Tr: " + _row(Tr)]) + "\n")
     return seq

@@ -49,6 +49,7 @@ from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
 from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement
+from icpbench.harness.outputs import claim, save_figure, write_csv, write_file, write_json
 from icpbench.harness.protocol import (
     STANDARD_DOMAINS,
     Protocol,
@@ -61,7 +62,6 @@ from icpbench.harness.results import (
     RESULTS_FILE,
     load_results,
     read_manifest,
-    write_json_atomic,
 )
 from icpbench.harness.runner import SELF, RunConfig, build_target, git_commit, package_versions
 from icpbench.harness.runner import run as run_grid
@@ -263,9 +263,9 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     out = Path(out_dir)
     variants = cfg.resolve()
     check_board_folder(out, cfg)
+    claim(out, BOARD_KIND)
     if read_manifest(out) is None:  # claim the folder for this protocol before any row exists
-        out.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out / "manifest.json", {
+        write_json(out / "manifest.json", {
             "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(), "config": asdict(cfg),
             "finished": False, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     runs: dict[str, Path] = {}
@@ -681,7 +681,7 @@ def board_figure(board: pd.DataFrame, path: Path) -> None:
     ax.set_title("ICP variants under the attack ensemble (most robust on top)")
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    save_figure(fig, path, dpi=130)
     plt.close(fig)
 
 
@@ -715,16 +715,16 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
     variants not ranked and why; ``extra_not_run``) into ``out``; with
     ``compare_with`` (another board's folder), the Markdown states the agreement of the two
     rankings (:func:`agreement_line`)."""
-    out.mkdir(parents=True, exist_ok=True)
     unused = [f"won_{m}" for m in MEMBERS if m not in ran_members(board)]
-    board.drop(columns=unused + [c for c in board if c.startswith("ran_")]).to_csv(
-        out / "leaderboard.csv", index=False, float_format="%.6g")
+    write_csv(out / "leaderboard.csv", board.drop(
+        columns=unused + [c for c in board if c.startswith("ran_")]), index=False,
+        float_format="%.6g")
     md = board_markdown(board, cfg, skipped)
     if compare_with is not None:
         md += "\n" + agreement_line(board, Path(compare_with)) + "\n"
-    (out / "leaderboard.md").write_text(md)
+    write_file(out / "leaderboard.md", md)
     board_figure(board, out / "leaderboard.png")
-    write_json_atomic(out / "manifest.json", {
+    write_json(out / "manifest.json", {
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
         "skipped": skipped, "extra_not_run": board.attrs.get("extra_not_run", {}),

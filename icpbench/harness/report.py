@@ -27,6 +27,7 @@ import pandas as pd
 from tabulate import tabulate
 
 from icpbench.core.errors import InputError
+from icpbench.harness.outputs import write_file
 from icpbench.harness.worst_case import WORST, WORST_DISPLAY, winner_note, worst_rows
 
 Format = Literal["md", "latex", "csv"]
@@ -535,15 +536,7 @@ def write_table(path: str | Path, text: str) -> None:
     in the same folder renamed over it (a link at ``path`` is refused, never followed)."""
     p = Path(path)
     check_table_destination(p)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "x") as f:
-            f.write(text)
-        check_table_destination(p)  # again, just before the rename
-        os.replace(tmp, p)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_file(p, text)
 
 
 def render(frame: pd.DataFrame, fmt: Format = "md") -> str:

@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 
 from icpbench.core.errors import InputError
+from icpbench.harness.outputs import _json_default
 
 RESULTS_FILE = "results.csv"
 MANIFEST_FILE = "manifest.json"
@@ -193,14 +194,6 @@ def _cell(v: Any) -> Any:
     return v
 
 
-def _json_default(v: Any) -> Any:
-    if hasattr(v, "item"):
-        return v.item()
-    if hasattr(v, "tolist"):
-        return v.tolist()
-    return str(v)
-
-
 def attacks_not_run(df: pd.DataFrame) -> dict[str, str]:
     """``{attack: message}`` of the attacks none of whose rows ran because of a user error
     (:data:`NOT_RUN`), with the first such message."""
@@ -333,18 +326,6 @@ def software_of(entry: Mapping[str, Any]) -> tuple:
     (with its dirty flag)."""
     git = entry.get("git") or {}
     return (json.dumps(entry.get("versions"), sort_keys=True), git.get("commit"), git.get("dirty"))
-
-
-def write_json_atomic(path: str | Path, obj: Any) -> None:
-    """Write JSON to ``path`` atomically (temp file + rename)."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2, sort_keys=True, default=_json_default)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def read_manifest(out_dir: str | Path) -> dict[str, Any] | None:

@@ -42,6 +42,8 @@ from icpbench.corruptions.base import SEVERITIES
 from icpbench.datasets.base import Dataset
 from icpbench.harness.corruption_units import build_corruption_attacks, check_corruptions, grid_units
 from icpbench.harness.executors import WorkItem, check_executor, get_executor
+from icpbench.harness.options import RunOptions
+from icpbench.harness.outputs import claim, write_json
 from icpbench.harness.progress import RunProgress
 from icpbench.harness.results import (
     BAD_INPUT,
@@ -53,16 +55,8 @@ from icpbench.harness.results import (
     lock_results_dir,
     merge_provenance,
     read_manifest,
-    write_json_atomic,
 )
-from icpbench.harness.settings import (
-    LIST_FIELDS,
-    SEED_MAX,
-    check_list_field,
-    check_run_fields,
-    config_file,
-    seed_ok,
-)
+from icpbench.harness.settings import check_list_field, config_file
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.self_surrogate import self_surrogate
@@ -131,8 +125,9 @@ class RunConfig:
     def validate(self) -> RunConfig:
         """Check names, budgets, sizes and every plugin setting; resolve ``all`` and the default
         budgets. Raises InputError naming the setting and listing valid choices."""
-        for key in LIST_FIELDS:  # one rule for every list field, whoever set it
-            setattr(self, key, check_list_field(key, getattr(self, key)))
+        checked = RunOptions.parse({f.name: getattr(self, f.name) for f in fields(self)})
+        for key in self.field_names():  # one model for every field, whoever set it
+            setattr(self, key, getattr(checked, key))
         ds_cls = registry.datasets.get(self.dataset)
         self.attacks = registry.attacks.resolve(self.attacks)
         self.targets = registry.targets.resolve(self.targets)
@@ -143,21 +138,6 @@ class RunConfig:
                              f"{self.surrogate!r} is a black box (use --surrogate p2plane or p2point)")
         if self.budgets is None:
             self.budgets = check_list_field("budgets", list(ds_cls.default_budgets))
-        for key in ("samples", "batch_size", "threads", "dataset_seed"):
-            v = getattr(self, key)
-            if v is None and key == "samples":
-                continue
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise InputError(f"{key} must be an integer, got {v!r}")
-        if self.samples is not None and self.samples < 1:
-            raise InputError(f"--samples must be >= 1, got {self.samples}")
-        if self.batch_size < 1:
-            raise InputError(f"batch size must be >= 1, got {self.batch_size}")
-        if self.threads < 1:
-            raise InputError(f"--threads must be >= 1, got {self.threads}")
-        if not seed_ok(self.dataset_seed) or self.dataset_seed < 0:
-            raise InputError(f"dataset_seed must be an integer from 0 to {SEED_MAX}, got "
-                             f"{self.dataset_seed!r}")
         self._check_params()
         check_corruptions(self)
         check_executor(self.executor)
@@ -193,7 +173,8 @@ class RunConfig:
         if unknown:
             raise InputError(f"{source}: unknown setting(s) {', '.join(map(repr, unknown))}; valid: "
                              f"{', '.join(cls.field_names())}")
-        return cls(**{k: copy.deepcopy(v) for k, v in check_run_fields(data, source).items()})
+        checked = RunOptions.parse(data, source)
+        return cls(**{k: copy.deepcopy(getattr(checked, k)) for k in data})
 
     @classmethod
     def from_file(cls, path: str | Path) -> RunConfig:
@@ -435,6 +416,7 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
     if str(out_dir) == "":
         raise InputError("the results folder is empty ('')")
     _check_out_dir(out_dir)
+    claim(out_dir, "run")
     worker = GridWorker(cfg)
     dataset, preset = worker.dataset, worker.preset
     manifest = {
@@ -448,7 +430,6 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                      "processor": platform.processor(), "cpu_count": _cpu_count()},
     }
     manifest["fingerprints"] = {n: a.fingerprint(cfg.budgets) for n, a in worker.attacks.items()}
-    out_dir.mkdir(parents=True, exist_ok=True)
     with lock_results_dir(out_dir):
         _check_out_dir(out_dir)  # again, now that no other run can be writing
         old = read_manifest(out_dir)
@@ -484,7 +465,7 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
             {n: (None if s is None else s.settings()) for n, s in worker.self_surrogates.items()})
         manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
         manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+        write_json(out_dir / MANIFEST_FILE, manifest)
         try:
             _run_items(cfg, worker, store, manifest, progress=progress, on_unit=on_unit)
         except BaseException:
@@ -492,11 +473,11 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                 (out_dir / MANIFEST_FILE).unlink(missing_ok=True)
                 raise
             manifest["completed_rows"] = len(store)
-            write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+            write_json(out_dir / MANIFEST_FILE, manifest)
             raise
         manifest["completed_rows"] = len(store)
         manifest["finished"] = True
-        write_json_atomic(out_dir / MANIFEST_FILE, manifest)
+        write_json(out_dir / MANIFEST_FILE, manifest)
     return store
 
 

@@ -1,19 +1,15 @@
-"""Type and range checks of the fields of a run configuration, wherever it comes from.
+"""Rules shared by the option models of :mod:`icpbench.harness.options`: list fields, budgets and
+the ``--config`` path.
 
-``icpbench run --config FILE`` must accept exactly what the command-line flags accept: a flag is
-parsed by the CLI (``--budgets 1,5`` is a list of numbers, ``--strict`` a boolean), a config file by
-YAML, whose values may have any type. :func:`check_run_fields` checks each field of such a mapping,
-turns the spellings the flags accept (``budgets: "1,5"``, ``seeds: 3``) into the field's type, and
-refuses anything else with a message naming the file and the field.
-
-The list fields (:data:`LIST_FIELDS`: attacks, targets, budgets, seeds, corruptions, severities) are
-checked by one rule, also when the configuration was built in code or from the flags
-(:func:`check_list_field`, called by ``RunConfig.validate``): a single value is a list of one, as
-the flag reads it; a comma-separated text is split as the flag splits it; a mapping is refused
-(never read as its keys); every item must have the field's type and range, and no item may repeat
-(severity levels, a set, are merged).
-Budgets must moreover be physically sensible and tell apart in the tables
-(:func:`check_budgets`).
+A flag is parsed by the CLI (``--budgets 1,5`` is a list of numbers), a config file by YAML, whose
+values may have any type. The list fields (:data:`LIST_FIELDS`: attacks, targets, budgets, seeds,
+corruptions, severities) are read by one rule wherever they come from (:class:`ListField`, used by
+the option models, and :func:`check_list_field`): a single value is a list of one, as the flag
+reads it; a comma-separated text is split as the flag splits it; a mapping is refused (never read
+as its keys); every item must have the field's type and range, and no item may repeat (severity
+levels, a set, are merged). Budgets must moreover be physically sensible and tell apart in the
+tables (:func:`check_budgets`). pydantic has no notion of a flag's comma-separated spelling, so
+this part is written here; every other check of a field is the model's.
 """
 
 from __future__ import annotations
@@ -68,16 +64,6 @@ class _Bad(ValueError):
     def __init__(self, what: str, detail: str = "") -> None:
         super().__init__(what)
         self.detail = detail
-
-
-def _text(v: Any) -> str:
-    if not isinstance(v, str) or not v.strip():
-        raise _Bad("a non-empty name")
-    return v
-
-
-def _optional_text(v: Any) -> str | None:
-    return None if v is None else _text(v)
 
 
 def seed_ok(s: Any) -> bool:
@@ -280,84 +266,6 @@ def check_list_field(key: str, v: Any, source: str | None = None) -> list[Any] |
             out = spec.whole(out)
         except InputError as exc:
             raise InputError(f"{where}: {exc}") from None
-    return out
-
-
-def _int_at_least(lo: int, optional: bool = False) -> Callable[[Any], int | None]:
-    def check(v: Any) -> int | None:
-        if v is None and optional:
-            return None
-        if not _is_int(v) or v < lo or v > SEED_MAX:
-            raise _Bad(f"an integer from {lo} to {SEED_MAX}" + (" or null (all)" if optional else ""))
-        return v
-    return check
-
-
-def _flag(v: Any) -> bool:
-    if not isinstance(v, bool):
-        raise _Bad("true or false")
-    return v
-
-
-def _mapping(v: Any) -> dict[str, Any]:
-    if v is None:
-        return {}
-    if not isinstance(v, Mapping) or not all(isinstance(k, str) for k in v):
-        raise _Bad("a mapping of settings (KEY: VALUE)")
-    return dict(v)
-
-
-def _nested(v: Any) -> dict[str, dict[str, Any]]:
-    if v is None:
-        return {}
-    if not isinstance(v, Mapping) or not all(
-            isinstance(k, str) and isinstance(p, Mapping) and all(isinstance(x, str) for x in p)
-            for k, p in v.items()):
-        raise _Bad("a mapping of plugin names to mappings of settings (NAME: {KEY: VALUE})")
-    return {k: dict(p) for k, p in v.items()}
-
-
-#: Scalar and mapping field -> check (returns the value as the field's type, or raises
-#: :class:`_Bad`); the list fields are in :data:`LIST_FIELDS`.
-SCALAR_CHECKS: dict[str, Callable[[Any], Any]] = {
-    "dataset": _text, "surrogate": _text, "split": _text, "executor": _text,
-    "icp_preset": _optional_text,
-    "samples": _int_at_least(1, optional=True), "batch_size": _int_at_least(1),
-    "threads": _int_at_least(1), "dataset_seed": _int_at_least(0),
-    "strict": _flag, "strict_files": _flag,
-    "dataset_params": _mapping, "attack_params": _nested, "target_params": _nested,
-}
-
-
-def _list_check(key: str) -> Callable[[Any], Any]:
-    return lambda v: LIST_FIELDS[key].check(v, FLAGS[key])
-
-
-#: Every field of a run configuration -> its check.
-FIELD_CHECKS: dict[str, Callable[[Any], Any]] = {
-    **SCALAR_CHECKS, **{k: _list_check(k) for k in LIST_FIELDS}}
-
-
-def check_run_fields(data: Mapping[str, Any], source: str) -> dict[str, Any]:
-    """The fields of ``data`` checked and converted (see the module docstring).
-
-    Raises:
-        InputError: a value of the wrong type or out of range; the message names ``source`` (the
-            file) and the field, and says what it must be.
-    """
-    out = {}
-    for k, v in data.items():
-        if k in LIST_FIELDS:
-            out[k] = check_list_field(k, v, source)
-            continue
-        check = SCALAR_CHECKS.get(k)
-        if check is None:
-            out[k] = v
-            continue
-        try:
-            out[k] = check(v)
-        except _Bad as exc:
-            raise InputError(f"{source}: setting {k!r} must be {exc}, got {v!r}") from None
     return out
 
 

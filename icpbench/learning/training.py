@@ -38,8 +38,9 @@ from icpbench.core.iterated_sector import SectorIterSettings
 from icpbench.core.projection import project_to_ball
 from icpbench.core.se3 import pose_error, pose_error_components
 from icpbench.core.types import Batch
+from icpbench.harness.outputs import claim, write_file, write_json
 from icpbench.harness.progress import progress_bar
-from icpbench.harness.results import lock_results_dir, write_json_atomic
+from icpbench.harness.results import lock_results_dir
 from icpbench.learning import distributed as ddp
 from icpbench.learning.losses import adversarial_loss, reconstruction_loss, weights
 from icpbench.learning.prior import prior_channels, sector_prior
@@ -167,10 +168,6 @@ def _budgets(cfg: TrainConfig) -> torch.Tensor:
     return torch.as_tensor([validate_budget(b) for b in cfg.budgets], dtype=torch.float64)
 
 
-#: Largest learning rate accepted (AdamW steps of this size already throw the weights about).
-MAX_LR = 1.0
-
-
 def check_train_config(cfg: TrainConfig) -> None:
     """Check every setting that can be checked without data, before anything is written.
 
@@ -180,20 +177,15 @@ def check_train_config(cfg: TrainConfig) -> None:
     """
     from dataclasses import fields
 
+    from icpbench.harness.options import TrainOptions
     from icpbench.learning.network import GeneratorConfig, generator_config
 
-    for flag, v, lo in (("--epochs", cfg.epochs, 0), ("--pretrain-epochs", cfg.pretrain_epochs, 0),
-                        ("--train-samples", cfg.train_samples, 1),
-                        ("--eval-samples", cfg.eval_samples, 1),
-                        ("--batch-size", cfg.batch_size, 1), ("--threads", cfg.threads, 1)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise InputError(f"{flag} must be an integer >= {lo}, got {v!r}")
+    TrainOptions.parse({k: getattr(cfg, k) for k in (  # the fields a flag sets, one model
+        "epochs", "pretrain_epochs", "train_samples", "eval_samples", "batch_size", "threads",
+        "lr", "alpha", "max_minutes", "budgets", "strict", "adv_per_budget", "icp_backprop")})
     if cfg.pretrain_epochs + cfg.epochs < 1:
         raise InputError(f"--epochs + --pretrain-epochs must be >= 1 (nothing would be trained), "
                          f"got {cfg.epochs} + {cfg.pretrain_epochs}")
-    if not (isinstance(cfg.lr, int | float) and math.isfinite(cfg.lr) and 0 <= cfg.lr <= MAX_LR):
-        raise InputError(f"--lr must be a number in [0, {MAX_LR:g}], got {cfg.lr!r}")
-    _budgets(cfg)
     valid = sorted(f.name for f in fields(GeneratorConfig))
     unknown = sorted(set(cfg.generator_overrides) - set(valid))
     if unknown:
@@ -235,7 +227,10 @@ def _train(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str, *, pr
     if not cfg_path.exists() and any((out / f).exists() for f in ("generator.pt", "generator.json")):
         raise InputError(f"{out} already holds a generator.pt/.json that no training run in this "
                          "folder wrote; training would overwrite it: use a new --out")
-    out.mkdir(parents=True, exist_ok=True)
+    if ctx.is_main:
+        claim(out, "train")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
     with lock_results_dir(out) if ctx.is_main else nullcontext():
         if cfg_path.exists() and json.loads(cfg_path.read_text()) != asdict(cfg):  # again, locked
             raise InputError(f"{out} holds a training run with another configuration; use a new "
@@ -258,7 +253,7 @@ def _train_locked(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str
 
     cfg_path = out / "train_config.json"
     if ctx.is_main:
-        write_json_atomic(cfg_path, asdict(cfg))
+        write_json(cfg_path, asdict(cfg))
     w = weights(cfg.weights)
     budgets = _budgets(cfg)
     # validates the ICP settings before any data is loaded
@@ -311,7 +306,7 @@ def _train_locked(cfg: TrainConfig, out: Path, ctx: ddp.DistContext, device: str
         rng.random(len(train_set))
     history_path = out / "history.csv"
     if ctx.is_main and not history_path.exists():
-        history_path.write_text("epoch,phase,loss,l_adv,l_rec,trans_err_xy,lr,wall_s\n")
+        write_file(history_path, "epoch,phase,loss,l_adv,l_rec,trans_err_xy,lr,wall_s\n")
     t0 = time.perf_counter()
     from icpbench.learning.geometry import Geometry
 
