@@ -376,6 +376,9 @@ def test_a_truncated_kitti_scan_skips_only_the_samples_that_read_it(kitti_root, 
     assert res.exit_code == 0, res.output
     df = load_results(tmp_path / "o")
     assert len(df) == 5 and (df["status"] != "error").all()
+    # the replaced error row is a retry, not a key "stored twice"
+    assert df.attrs["retried_rows"] == 1 and df.attrs["duplicate_rows"] == 0
+    assert "stored twice" not in res.output
 
 
 def test_one_garbage_mesh_among_several_skips_one_sample(tmp_path):

@@ -133,3 +133,43 @@ def test_every_manifest_table_and_figure_goes_through_the_writer():
                         continue
                     found.append(f"{rel}:{node.lineno} .{node.func.attr}(")
     assert not found, found
+
+
+# -- a corrupted results.csv cell is named by file, line and column ---------------------------------
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    from icpbench.harness.runner import RunConfig, run
+
+    out = tmp_path_factory.mktemp("run")
+    run(RunConfig(dataset="synthetic", attacks=["none"], targets=["p2point"], budgets=[1.0],
+                  samples=2, dataset_params={"n_samples": 2, "n_scan": 200, "n_map": 2000}),
+        out, progress=False)
+    return out
+
+
+@pytest.mark.parametrize(("column", "value", "needle"), [
+    ("seed", "zero", "is not a 64-bit integer seed"),
+    ("budget", "one", "is not a number (budget)"),
+    ("trans_err_xy", "12cm", "is not a number"),
+    ("meta", "{broken", "is not a JSON object"),
+    ("extra", "[1, 2]", "is not a JSON object"),
+])
+def test_a_corrupted_cell_is_refused_naming_file_line_and_column(small_run, tmp_path, column,
+                                                                 value, needle):
+    import csv
+    import shutil
+
+    from icpbench.harness.results import load_results
+
+    out = tmp_path / "copy"
+    shutil.copytree(small_run, out)
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    rows[1][column] = value
+    with (out / "results.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    with pytest.raises(InputError) as exc:
+        load_results(out)
+    text = str(exc.value)
+    assert f"results.csv, line 3, column {column!r}" in text and needle in text, text

@@ -124,7 +124,8 @@ def test_a_results_file_with_an_unreadable_seed_is_reported(tiny_run, tmp_path):
     first = lines[1].split(",")
     first[4] = str(2**64)
     csv.write_text("".join([lines[0], ",".join(first), *lines[2:]]))
-    with pytest.raises(InputError, match="seeds must be 64-bit integers"):
+    with pytest.raises(InputError, match=r"line 2, column 'seed': \S*18446744073709551616\S* is not a "
+                                         "64-bit integer seed"):
         load_results(run_dir)
 
 

@@ -206,12 +206,41 @@ def attacks_not_run(df: pd.DataFrame) -> dict[str, str]:
     return out
 
 
+def _first_bad_cell(col: pd.Series, kind: Any) -> tuple[int, Any]:
+    """(CSV line, value) of the first cell of ``col`` that does not convert to ``kind``."""
+    for i, v in enumerate(col):
+        try:
+            np.asarray([v]).astype(kind)
+        except (ValueError, OverflowError, TypeError):
+            return i + 2, v
+    return 0, None
+
+
+def _json_cell(path: Path, col: str, text: Any, line: int) -> dict[str, Any]:
+    """A ``meta`` / ``extra`` cell as a dict ({} if empty); a cell that is not a JSON object is
+    refused naming the file, line and column."""
+    if not isinstance(text, str) or not text:
+        return {}
+    try:
+        out = json.loads(text)
+    except json.JSONDecodeError:
+        out = None
+    if not isinstance(out, dict):
+        raise InputError(f"{path}, line {line}, column {col!r}: {text[:60]!r} is not a JSON "
+                         "object (a corrupted cell? rows are written by `icpbench run`)")
+    return out
+
+
 def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     """Load a results directory (or CSV file) as a DataFrame.
 
     Incomplete rows (a half-written line: no ``status``) are dropped, and of several rows with the
     same key (sample, attack, target, budget, seed) only the last is kept; their numbers are in
-    ``df.attrs["incomplete_rows"]`` and ``df.attrs["duplicate_rows"]``. A row whose pose error is
+    ``df.attrs["incomplete_rows"]``, ``df.attrs["retried_rows"]`` (an error row of a bad input
+    or of an attack that could not run, replaced by a re-run as intended) and
+    ``df.attrs["duplicate_rows"]`` (any other key stored twice). A cell that cannot be read (a
+    seed, budget or number that is not one, a ``meta`` / ``extra`` that is not a JSON object) is
+    refused naming the file, its line and column. A row whose pose error is
     not finite never counts as converged; ``nan`` and ``inf`` in the :data:`NUMERIC_COLUMNS` are
     read as numbers (a target that returns NaN poses writes them). With ``expand``, the JSON
     ``meta`` and ``extra`` columns are expanded into ``meta.<key>`` and ``extra.<key>`` columns.
@@ -228,6 +257,7 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
                          f"({type(exc).__name__}: {str(exc).strip().splitlines()[0]})") from exc
     if df.empty:
         raise InputError(f"{p} holds no result rows")
+    df["_line"] = np.arange(2, len(df) + 2)  # the CSV line of each row (1: the header)
     missing = [c for c in KEY_COLUMNS + ("status", "converged", "strict", "meta", "extra")
                if c not in df]
     if missing:
@@ -239,17 +269,30 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     df = df[~incomplete].copy()
     if df.empty:
         raise InputError(f"{p} holds no complete result rows ({n_incomplete} incomplete)")
-    try:
-        df["seed"] = df["seed"].astype("int64")
-        df["budget"] = df["budget"].astype(float)
-    except (ValueError, OverflowError, TypeError) as exc:
-        raise InputError(f"{p} holds a seed or budget that is not a number icpbench can read "
-                         f"(seeds must be 64-bit integers: {exc})") from exc
+    for col, kind in (("seed", "int64"), ("budget", float)):
+        try:
+            df[col] = df[col].astype(kind)
+        except (ValueError, OverflowError, TypeError):
+            bad = _first_bad_cell(df[col], kind)
+            raise InputError(f"{p}, line {bad[0]}, column {col!r}: {bad[1]!r} is not "
+                             + ("a 64-bit integer seed" if col == "seed" else "a number (budget)")
+                             + " (a corrupted cell? rows are written by `icpbench run`)") from None
+    superseded = df.duplicated(list(KEY_COLUMNS), keep="last")
+    retried = superseded & df["error"].fillna("").astype(str).str.startswith((BAD_INPUT, NOT_RUN)) \
+        if "error" in df else superseded & False
     n_before = len(df)
-    df = df.drop_duplicates(list(KEY_COLUMNS), keep="last").reset_index(drop=True)
+    df = df[~superseded].reset_index(drop=True)
     for c in NUMERIC_COLUMNS:  # "nan"/"inf" are numbers here (ids stay text: no default NA)
         if c in df and not pd.api.types.is_numeric_dtype(df[c]):
-            df[c] = pd.to_numeric(df[c], errors="coerce").astype(float)
+            num = pd.to_numeric(df[c], errors="coerce").astype(float)
+            text = df[c].astype(str).str.strip().str.lower()
+            junk = df[c].notna() & num.isna() & ~text.isin(["nan", "+nan", "-nan"])
+            if junk.any():
+                i = int(np.flatnonzero(junk.to_numpy())[0])
+                raise InputError(f"{p}, line {int(df['_line'].iloc[i])}, column {c!r}: "
+                                 f"{df[c].iloc[i]!r} is not a number (a corrupted cell? rows are "
+                                 "written by `icpbench run`)")
+            df[c] = num
     df["converged"] = df["converged"].astype(str).str.lower().isin(["true", "1"])
     df["strict"] = df["strict"].astype(str).str.lower().isin(["true", "1"])
     for c in ERROR_COLUMNS:
@@ -257,12 +300,15 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
             df["converged"] &= np.isfinite(pd.to_numeric(df[c], errors="coerce").astype(float))
     if expand:
         for col in ("meta", "extra"):
-            parsed = [json.loads(s) if isinstance(s, str) and s else {} for s in df[col]]
+            parsed = [_json_cell(p, col, text, line) for text, line in zip(df[col], df["_line"],
+                                                                         strict=True)]
             keys = sorted({k for d in parsed for k in d})
             for k in keys:
                 df[f"{col}.{k}"] = [d.get(k) for d in parsed]
+    df = df.drop(columns="_line")
     df.attrs["incomplete_rows"] = n_incomplete
-    df.attrs["duplicate_rows"] = n_before - len(df)
+    df.attrs["retried_rows"] = int(retried.sum())
+    df.attrs["duplicate_rows"] = n_before - len(df) - int(retried.sum())
     manifest = read_manifest(p.parent) if (p.parent / MANIFEST_FILE).is_file() else None
     if manifest is not None:
         df.attrs["config"] = manifest.get("config") or {}
