@@ -12,8 +12,7 @@ the same scan against the same map, measured in the same run):
 * ``prior``: the prior input channels of the shipped model (``icpbench.learning.prior``): for the
   one-step sector prior one nearest-neighbour query of the scan in the map and a 6x6 solve; for the
   iterated prior (``prior="sector-iter"``) also the surrogate ICPs of the iterated analytic attack
-  (:class:`~icpbench.core.iterated_sector.SectorIterSettings` defaults, the generator attack's:
-  8 re-linearisations, so 9 forward ICPs of up to 100 iterations with 5 cm correspondence reuse);
+  with the generator attack's settings (``GeneratorAttack.prior_settings``);
 * ``generator-forward``: one forward pass of the shipped lidar-sim generator (prior given);
 * ``generator-attack``: the registered ``generator`` attack's ``run`` on the scan: precompute +
   prior + forward + projection, what the attack costs per scan;
@@ -23,8 +22,8 @@ the same scan against the same map, measured in the same run):
 * ``pgd-30``: the original oracle, ``pgd`` with its defaults (30 steps of 0.1 lambda from a random
   start; one round);
 * ``pgd-warm``: the cheaper oracle, ``pgd-warm`` with its defaults (the iterated analytic attack
-  with its default settings, then 2 PGD steps of 0.1 lambda through the 100-iteration surrogate
-  with 5 cm correspondence reuse and the implicit gradient; one round).
+  with 8 re-linearisations and 5 cm correspondence reuse, then 2 PGD steps of 0.1 lambda through
+  the 100-iteration surrogate with 5 cm correspondence reuse and the implicit gradient; one round).
 
 The iterated analytic attack keeps its result in the batch's memo (so that in one run the
 generator's prior, ``sector-iter`` and ``pgd-warm`` share it); every timed call here starts from an
@@ -229,4 +228,4 @@ def test_pgd_warm(benchmark, ratios):
     params = _pgd_case(benchmark, ratios, "pgd-warm", attack="pgd-warm")
     assert (params["steps"], params["step_size"], params["icp_iterations"]) == (2, 0.1, 100)
     assert params["init"] == "sector-iter" and params["icp_nn_reuse"] == 0.05
-    assert params["sector_iter"] == SectorIterSettings().as_dict()
+    assert params["sector_iter"] == SectorIterSettings(iterations=8, icp_nn_reuse=0.05).as_dict()

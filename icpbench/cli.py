@@ -305,6 +305,21 @@ def run(
     severities: Annotated[str | None, typer.Option(
         help="Corruption severity levels, comma-separated integers 1..5. [default: 1,2,3,4,5]")]
     = None,
+    monitors: Annotated[str | None, typer.Option(
+        help="Integrity monitors ('all' or comma-separated, see `icpbench list`): every row "
+             "records whether each fired, and the table adds each attack's detection rate and "
+             "undetected error. Calibrated per target on clean train-split scans. "
+             "[default: none]")] = None,
+    monitor_param: Annotated[list[str] | None, typer.Option(
+        help="Monitor setting NAME.KEY=VALUE, repeatable (e.g. odometry.sigma_m=0.2).")] = None,
+    false_alarm_rate: Annotated[float | None, typer.Option(
+        help="False-alarm rate each monitor is calibrated for (0..0.5). [default: 0.01]")] = None,
+    calibration_samples: Annotated[int | None, typer.Option(
+        help="Clean train-split scans the monitors are calibrated on. [default: 100]")] = None,
+    monitor_aware: Annotated[bool | None, typer.Option(
+        "--monitor-aware/--no-monitor-aware",
+        help="Query attacks maximise the undetected error (they know the monitors). "
+             "[default: no]")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No progress output.")] = False,
 ) -> None:
     """Run the grid samples x attacks x targets x budgets x seeds and print Table 1.
@@ -315,6 +330,7 @@ def run(
     out_dir: Path | None = None
     try:
         from icpbench.harness.corruption_report import corruption_section, split_rows
+        from icpbench.harness.monitor_report import monitor_section
         from icpbench.harness.report import render, table1, transfer_frame
         from icpbench.harness.results import attacks_not_run, load_results
         from icpbench.harness.runner import RunConfig
@@ -326,7 +342,9 @@ def run(
             "attacks": attacks, "targets": targets, "dataset": dataset, "budgets": budgets,
             "samples": samples, "seeds": seed, "surrogate": surrogate, "split": split,
             "strict": strict, "batch_size": batch_size, "threads": threads, "executor": executor,
-            "strict_files": strict_files, "corruptions": corruptions, "severities": severities}
+            "strict_files": strict_files, "corruptions": corruptions, "severities": severities,
+            "monitors": monitors, "false_alarm_rate": false_alarm_rate,
+            "calibration_samples": calibration_samples, "monitor_aware": monitor_aware}
         if dataset is not None and config is not None and dataset != base.dataset:
             base.dataset_params = {}  # another dataset: the file's dataset settings do not apply
             if budgets is None:
@@ -335,7 +353,8 @@ def run(
             if v is not None:
                 setattr(base, k, v)
         for flag, field_, items in (("--attack-param", "attack_params", attack_param),
-                                    ("--target-param", "target_params", target_param)):
+                                    ("--target-param", "target_params", target_param),
+                                    ("--monitor-param", "monitor_params", monitor_param)):
             merged = {n: dict(p) for n, p in getattr(base, field_).items()}
             for n, p in _nested(items, flag).items():
                 merged.setdefault(n, {}).update(p)
@@ -352,6 +371,8 @@ def run(
                 typer.echo(table1(df, "md", reference=reference, target=t, dataset=cfg.dataset))
             if not corrupted.empty:
                 typer.echo(f"\n{corruption_section(corrupted, 'md', t)}")
+            if cfg.monitors and not df.empty:
+                typer.echo(f"\n{monitor_section(df, 'md', t)}")
         if len(cfg.targets) > 1 and not df.empty:
             for b in cfg.budgets:
                 typer.echo(f"\nAttacks x targets (λ={b:g}, each target attacked through itself or "
@@ -385,6 +406,7 @@ def table(
 ) -> None:
     """Regenerate Table 1 (or the transfer table) from stored results."""
     from icpbench.harness.corruption_report import corruption_frame, corruption_section, split_rows
+    from icpbench.harness.monitor_report import monitor_section
     from icpbench.harness.report import (
         check_table_destination,
         render,
@@ -419,6 +441,10 @@ def table(
                           dataset=run_dataset(results_dir))
             if format != "csv" and not corrupted.empty:  # CSV stays one table
                 text += "\n" + corruption_section(corrupted, format, target)
+            if format != "csv":
+                for t in [target] if target else sorted(df["target"].unique()):
+                    section = monitor_section(df, format, t)
+                    text += f"\n\n{section}\n" if section else ""
         _write_or_echo(text, out)
     except Exception as exc:
         _user_error(exc)

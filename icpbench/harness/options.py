@@ -231,6 +231,16 @@ class RunOptions(Options):
     severities: Annotated[list[Annotated[int, Field(ge=S.SEVERITY_MIN, le=S.SEVERITY_MAX)]],
                           _list("severities")] = Field(
         [1, 2, 3, 4, 5], description="Corruption severity levels.")
+    monitors: Annotated[list[Name], _list("monitors")] = Field(
+        [], description="Integrity monitors whose alarms every row records ('all' or names).")
+    monitor_params: PluginSettings = Field({}, description="Per-monitor settings.")
+    false_alarm_rate: Annotated[float, Field(gt=0, le=0.5, allow_inf_nan=False)] = Field(
+        0.01, description="False-alarm rate each monitor is calibrated for, on clean scans of the "
+                          "train split.")
+    calibration_samples: Annotated[int, Field(ge=2, le=1_000_000)] = Field(
+        100, description="Clean train-split scans the monitors are calibrated on (at least "
+                         "1 / false_alarm_rate).")
+    monitor_aware: bool = Field(False, description="Query attacks maximise the undetected error.")
 
 
 # -- icpbench leaderboard --------------------------------------------------------------------------

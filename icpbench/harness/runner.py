@@ -22,6 +22,7 @@ import json
 import math
 import platform
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
@@ -56,7 +57,16 @@ from icpbench.harness.results import (
     merge_provenance,
     read_manifest,
 )
+from icpbench.harness.run_monitors import (
+    calibrate_run,
+    calibrated_monitors,
+    monitor_extra,
+    thresholds_of,
+    undetected_output,
+)
 from icpbench.harness.settings import check_list_field, config_file
+from icpbench.monitors.base import Monitor
+from icpbench.monitors.oracle import MonitoredOracle
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.self_surrogate import self_surrogate
@@ -96,6 +106,13 @@ class RunConfig:
         corruptions: realistic corruptions run beside the attacks (``["all"]`` = every one that
             loads; default none), each at every level of ``severities`` (1..5), the severity in the
             budget column (:mod:`icpbench.harness.corruption_units`).
+        monitors: integrity monitors (``["all"]`` = every one that loads; default none) whose
+            score and alarm every row records (:mod:`icpbench.harness.run_monitors`), each
+            calibrated per target for ``false_alarm_rate`` (0..0.5) on the clean registrations of
+            the first ``calibration_samples`` scans of the dataset's ``train`` split.
+        monitor_params: per-monitor settings, ``{name: {key: value}}``.
+        monitor_aware: the query attacks maximise the *undetected* error (candidates a monitor
+            flags count as failures), instead of ignoring the monitors.
 
     :meth:`validate` resolves ``all`` and the default budgets and checks every setting, so the
     manifest records exactly what ran; :meth:`from_file` reads such a record back.
@@ -121,6 +138,11 @@ class RunConfig:
     strict_files: bool = False
     corruptions: list[str] = field(default_factory=list)
     severities: list[int] = field(default_factory=lambda: list(SEVERITIES))
+    monitors: list[str] = field(default_factory=list)
+    monitor_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    false_alarm_rate: float = 0.01
+    calibration_samples: int = 100
+    monitor_aware: bool = False
 
     def validate(self) -> RunConfig:
         """Check names, budgets, sizes and every plugin setting; resolve ``all`` and the default
@@ -139,6 +161,7 @@ class RunConfig:
         if self.budgets is None:
             self.budgets = check_list_field("budgets", list(ds_cls.default_budgets))
         self._check_params()
+        self._check_monitors()
         check_corruptions(self)
         check_executor(self.executor)
         return self
@@ -158,6 +181,18 @@ class RunConfig:
         self.target_params = {n: registry.targets.check_params(n, p)
                               for n, p in self.target_params.items()}
         self.dataset_params = registry.datasets.check_params(self.dataset, self.dataset_params)
+
+    def _check_monitors(self) -> None:
+        """Monitor names resolved, settings only for monitors in the run, typed and in range."""
+        self.monitors = registry.monitors.resolve(self.monitors) if self.monitors else []
+        stray = sorted(set(self.monitor_params) - set(self.monitors))
+        if stray:
+            raise InputError(f"settings given for monitor(s) {', '.join(map(repr, stray))} that "
+                             f"are not in this run ({', '.join(self.monitors) or 'no monitors'})")
+        self.monitor_params = {n: registry.monitors.check_params(n, p)
+                               for n, p in self.monitor_params.items()}
+        if self.monitor_aware and not self.monitors:
+            raise InputError("--monitor-aware needs --monitors (the monitors the attacks evade)")
 
     @classmethod
     def field_names(cls) -> list[str]:
@@ -334,7 +369,8 @@ class GridWorker:
     compute elsewhere rebuild equivalent workers from :meth:`factory`.
     """
 
-    def __init__(self, cfg: RunConfig) -> None:
+    def __init__(self, cfg: RunConfig,
+                 thresholds: Mapping[str, Mapping[str, float]] | None = None) -> None:
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
         self.dataset = load_dataset(cfg)
@@ -362,10 +398,25 @@ class GridWorker:
                         for n in cfg.attacks}
         self.attacks.update(build_corruption_attacks(cfg))
         self.prepared: dict[str, dict[str, Any]] = {t: {} for t in self.targets}
+        self.set_thresholds(thresholds)
+
+    def set_thresholds(self, thresholds: Mapping[str, Mapping[str, float]] | None) -> None:
+        """Give the run's monitors their calibrated thresholds, ``{target: {monitor: value}}``
+        (None: no monitors, or not yet calibrated)."""
+        self.thresholds = None if thresholds is None else {t: dict(v) for t, v in
+                                                           thresholds.items()}
+        self.monitors: dict[str, list[Monitor]] | None = None if thresholds is None else {
+            t: calibrated_monitors(self.cfg, thresholds[t]) for t in self.targets}
+
+    def prepared_maps(self, target: Target, batch: Batch) -> list:
+        """``batch``'s maps in the form ``target.register`` takes."""
+        name = next(n for n, t in self.targets.items() if t is target)
+        return batch.maps if target.differentiable else _prepared(target, name, batch,
+                                                                  self.prepared)
 
     def factory(self) -> Callable[[], GridWorker]:
         """A picklable callable that builds an equivalent worker (in another process or node)."""
-        return partial(GridWorker, self.cfg)
+        return partial(GridWorker, self.cfg, self.thresholds)
 
     def _load(self, item: WorkItem) -> tuple[list[Sample], dict[str, str]]:
         """The batch's samples, and ``{sample id: message}`` of those whose input is bad (skipped;
@@ -388,7 +439,7 @@ class GridWorker:
         for budget, aname in item.units:
             rows = [] if batch is None else _run_unit(
                 batch, self.attacks[aname], self.targets, self.surrogate, self.prepared, budget,
-                item.seed, self.cfg, invariant_cache, self.self_surrogates)
+                item.seed, self.cfg, invariant_cache, self.self_surrogates, self.monitors)
             for tname in self.targets:
                 for r in _base_rows(list(bad), [{}] * len(bad), aname, tname, budget, item.seed,
                                     self.cfg):
@@ -464,6 +515,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
             worker.surrogate.settings() if worker.self_surrogates is None else
             {n: (None if s is None else s.settings()) for n, s in worker.self_surrogates.items()})
         manifest["attacks"] = {n: a.settings() for n, a in worker.attacks.items()}
+        if cfg.monitors:
+            _calibrate_monitors(cfg, worker, manifest, old, progress)
         manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         write_json(out_dir / MANIFEST_FILE, manifest)
         try:
@@ -479,6 +532,20 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         manifest["finished"] = True
         write_json(out_dir / MANIFEST_FILE, manifest)
     return store
+
+
+def _calibrate_monitors(cfg: RunConfig, worker: GridWorker, manifest: dict[str, Any],
+                        old: Mapping[str, Any] | None, progress: bool) -> None:
+    """Calibrate the run's monitors per target (or take the calibration a resumed run stored:
+    same configuration, same clean scans, same thresholds), record it in ``manifest`` and give
+    the thresholds to ``worker``."""
+    cal = (old or {}).get("monitors")
+    if not cal or set(cal) != set(worker.targets):
+        say = (lambda line: print(f"icpbench run: {line}", file=sys.stderr)) if progress else None
+        cal = {t: {m: c.as_dict() for m, c in per.items()}
+               for t, per in calibrate_run(cfg, worker.targets, worker.prepared_maps, say).items()}
+    manifest["monitors"] = cal
+    worker.set_thresholds(thresholds_of(cal))
 
 
 def _check_out_dir(out_dir: Path) -> None:
@@ -558,7 +625,8 @@ def _attack_context(name: str, cfg: RunConfig, dataset: Dataset) -> dict[str, An
 def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogate: Target | None,
               prepared: dict[str, dict[str, Any]], budget: float, seed: int, cfg: RunConfig,
               invariant_cache: dict[tuple[str, str], tuple],
-              self_surrogates: Mapping[str, Target | None] | None = None) -> list[dict[str, Any]]:
+              self_surrogates: Mapping[str, Target | None] | None = None,
+              monitors: Mapping[str, list[Monitor]] | None = None) -> list[dict[str, Any]]:
     """Attack one batch and register it with every target; return the rows.
 
     A non-adaptive attack runs once and every target registers its output (transfer). An adaptive
@@ -568,7 +636,9 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
     target itself or its replica as surrogate (``self_surrogates``).
 
     Each sample's random stream comes from (seed, attack, budget, sample id), so the rows do not
-    depend on the batch. An attack that is ``budget_invariant`` is registered once per batch."""
+    depend on the batch. An attack that is ``budget_invariant`` is registered once per batch.
+    With ``monitors`` (``{target: calibrated monitors}``) every row records their alarms, and with
+    ``cfg.monitor_aware`` a query attack sees a :class:`MonitoredOracle` of its target."""
     if attack.adaptive(self_surrogates is not None):
         groups = [[t] for t in targets]
     else:
@@ -582,11 +652,14 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
             target = targets[names[0]]
             maps = batch.maps if target.differentiable else _prepared(target, names[0], batch,
                                                                       prepared)
-            oracle = QueryOracle(target, batch, maps)
+            oracle = (MonitoredOracle(target, batch, maps, monitors[names[0]])
+                      if cfg.monitor_aware and monitors else QueryOracle(target, batch, maps))
         t0 = time.perf_counter()
         try:
             out: AttackOutput | None = attack.run(batch, budget, surrogate=sur,
                                                   generator=int(seed), oracle=oracle)
+            if isinstance(oracle, MonitoredOracle):  # report the best undetected scan
+                out = undetected_output(oracle, out, batch, budget)
             attack_err = ""
         except Exception as exc:  # a crashing plugin becomes failed rows, the run goes on
             out, attack_err = None, f"{type(exc).__name__}: {exc}"
@@ -595,15 +668,18 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
         attack_time = (time.perf_counter() - t0) / len(batch)
         for tname in names:
             rows += _target_rows(batch, attack, tname, targets[tname], out, attack_err,
-                                 attack_time, prepared, budget, seed, cfg, invariant_cache)
+                                 attack_time, prepared, budget, seed, cfg, invariant_cache,
+                                 None if monitors is None else monitors[tname])
     return rows
 
 
 def _target_rows(batch: Batch, attack: Attack, tname: str, target: Target,
                  out: AttackOutput | None, attack_err: str, attack_time: float,
                  prepared: dict[str, dict[str, Any]], budget: float, seed: int, cfg: RunConfig,
-                 invariant_cache: dict[tuple[str, str], tuple]) -> list[dict[str, Any]]:
-    """Register an attack's output (or record its failure) with one target; the rows."""
+                 invariant_cache: dict[tuple[str, str], tuple],
+                 monitors: list[Monitor] | None = None) -> list[dict[str, Any]]:
+    """Register an attack's output (or record its failure) with one target; the rows (with the
+    monitors' scores and alarms in ``extra``, where there are monitors)."""
     B = len(batch)
     ids = [s.id for s in batch.samples]
     metas = [s.meta for s in batch.samples]
@@ -616,7 +692,7 @@ def _target_rows(batch: Batch, attack: Attack, tname: str, target: Target,
     t1 = time.perf_counter()
     try:
         if attack.budget_invariant and cache_key in invariant_cache:
-            reg_T, conv, iters, inl, status = invariant_cache[cache_key]
+            reg_T, conv, iters, inl, status, alarms = invariant_cache[cache_key]
         else:
             maps = batch.maps if target.differentiable else _prepared(target, tname, batch,
                                                                      prepared)
@@ -625,8 +701,10 @@ def _target_rows(batch: Batch, attack: Attack, tname: str, target: Target,
             reg_T, conv, iters, inl, status = (reg.T.detach().to(torch.float64),
                                                reg.converged, reg.iterations,
                                                reg.inlier_fraction, reg.status)
+            alarms = ([{}] * B if not monitors else
+                      monitor_extra(monitors, batch, out.scans, reg))
             if attack.budget_invariant:
-                invariant_cache[cache_key] = (reg_T, conv, iters, inl, status)
+                invariant_cache[cache_key] = (reg_T, conv, iters, inl, status, alarms)
         icp_err = ""
     except Exception as exc:
         icp_err = f"{type(exc).__name__}: {exc}"
@@ -646,7 +724,8 @@ def _target_rows(batch: Batch, attack: Attack, tname: str, target: Target,
         r.update(status=st, converged=bool(conv[b]) and st == "ok",
                  iterations=int(iters[b]), inlier_fraction=float(inl[b]),
                  attack_time_s=attack_time, icp_time_s=icp_time, error="",
-                 extra={k: float(np.asarray(v)[b]) for k, v in out.extra.items()})
+                 extra={**{k: float(np.asarray(v)[b]) for k, v in out.extra.items()},
+                        **alarms[b]})
     return base
 
 

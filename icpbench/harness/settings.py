@@ -45,7 +45,9 @@ FLAGS: dict[str, str] = {
     "samples": "--samples", "batch_size": "--batch-size", "threads": "--threads",
     "strict": "--strict", "strict_files": "--strict-files", "dataset_params": "--dataset-param",
     "attack_params": "--attack-param", "target_params": "--target-param",
-    "corruptions": "--corruptions", "severities": "--severities",
+    "corruptions": "--corruptions", "severities": "--severities", "monitors": "--monitors",
+    "monitor_params": "--monitor-param", "false_alarm_rate": "--false-alarm-rate",
+    "calibration_samples": "--calibration-samples", "monitor_aware": "--monitor-aware",
 }
 
 
@@ -235,6 +237,8 @@ LIST_FIELDS: dict[str, ListField] = {
     "corruptions": ListField("corruption", "corruption names ('all': every corruption that "
                              "loads; an empty list or null: none)", _name, _name, none="empty",
                              empty_ok=True),
+    "monitors": ListField("monitor", "monitor names ('all': every monitor that loads; an empty "
+                          "list or null: none)", _name, _name, none="empty", empty_ok=True),
     "severities": ListField("severity", f"integers {SEVERITY_MIN}..{SEVERITY_MAX} (corruption "
                             "severity levels; a repeated level counts once)", _severity,
                             _from_text(int, _severity, "an integer"), repeats="merged"),
