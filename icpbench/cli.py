@@ -465,6 +465,8 @@ def leaderboard(
     executor: Annotated[str, _opt(LB, "executor")] = "local",
     out: Annotated[str | None, _opt(LB, "out")] = None,
     compare_with: Annotated[str | None, _opt(LB, "compare_with")] = None,
+    monitors: Annotated[str | None, _opt(LB, "monitors")] = None,
+    monitor_aware: Annotated[bool, _opt(LB, "monitor_aware", "--monitor-aware")] = False,
     quiet: Annotated[bool, _opt(LB, "quiet", "--quiet")] = False,
 ) -> None:
     """Rank ICP variants by the worst case the attack ensemble finds against each (adaptive:
@@ -483,7 +485,8 @@ def leaderboard(
             add_target=list(add_target or []), extra_attacks=extra_attacks or [],
             dataset=dataset, dataset_param=_flat(dataset_param, "--dataset-param"),
             ensemble_param=_flat(ensemble_param, "--ensemble-param"), seed=seed,
-            executor=executor, out=out, compare_with=compare_with, quiet=quiet))
+            executor=executor, out=out, compare_with=compare_with, monitors=monitors or [],
+            monitor_aware=monitor_aware, quiet=quiet))
         out_dir = Path(o.out if o.out is not None else "results/leaderboard"
                        if o.domain == "town" else f"results/leaderboard-{o.domain}")
         cfg = LeaderboardConfig.for_domain(o.domain, executor=o.executor,
@@ -502,6 +505,7 @@ def leaderboard(
             cfg.samples = o.samples
         if o.budgets is not None:
             cfg.budgets = list(o.budgets)
+        cfg.monitors, cfg.monitor_aware = list(o.monitors), o.monitor_aware
         if o.variants is not None:  # a label may contain commas only if it is a known one
             cfg.variants = split_variant_labels(o.variants)
         n = len(cfg.resolve())

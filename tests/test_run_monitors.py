@@ -121,3 +121,25 @@ def test_too_few_calibration_scans_for_the_rate_are_refused(tmp_path):
     with pytest.raises(InputError, match="needs at least 100 clean scans"):
         run(RunConfig(**{**SYN, "false_alarm_rate": 0.01}, attacks=["none"]), tmp_path / "o",
             progress=False)
+
+
+def test_a_board_with_monitors_shows_detection_and_the_undetected_worst_case(tmp_path):
+    from icpbench.harness.leaderboard import LeaderboardConfig, run_leaderboard
+
+    cfg = LeaderboardConfig(dataset="synthetic", samples=2, budgets=[1.0],
+                            dataset_params={"n_samples": 100, "n_scan": 300, "n_map": 3000},
+                            variants=["p2point"], monitors=["inliers", "residual"],
+                            ensemble={"spoof_queries": 3, "valley_queries": 3, "queries": 3,
+                                      "pgd_steps": 1})
+    board = run_leaderboard(cfg, tmp_path / "b", progress=False)
+    row = board.iloc[0]
+    assert 0.0 <= row.detected_share <= 1.0
+    assert 0.0 <= row.undetected_mean <= row.worst_mean + 1e-12
+    df = load_results(tmp_path / "b" / "runs" / "p2point")
+    e = df[df.attack == "ensemble"]
+    alarm = e["extra." + ALARM + "any"].astype(float).to_numpy() > 0
+    assert row.detected_share == pytest.approx(alarm.mean())
+    assert row.undetected_mean == pytest.approx(
+        np.where(alarm, 0.0, e.trans_err_xy.astype(float)).mean())
+    md = (tmp_path / "b" / "leaderboard.md").read_text()
+    assert "| detected | undetected [m] |" in md and "the attacks ignore them" in md

@@ -67,6 +67,9 @@ from icpbench.harness.runner import SELF, RunConfig, build_target, git_commit, p
 from icpbench.harness.runner import run as run_grid
 from icpbench.targets.self_surrogate import self_surrogate
 
+#: The row column of a run with monitors that says whether any fired.
+_ALARM = "extra.monitor_alarm.any"
+
 #: A scan counts as "held" when its worst-case error stays within this multiple of lambda.
 SAFE_AMPLIFICATION = 1.5
 
@@ -171,6 +174,8 @@ class LeaderboardConfig:
     seed: int = 0
     batch_size: int = 4
     executor: str = "local"
+    monitors: list[str] = field(default_factory=list)
+    monitor_aware: bool = False
 
     @classmethod
     def for_domain(cls, domain: str, **fields: Any) -> LeaderboardConfig:
@@ -238,7 +243,8 @@ class LeaderboardConfig:
                          budgets=list(self.budgets), samples=self.samples, seeds=[self.seed],
                          surrogate=SELF, batch_size=self.batch_size, executor=self.executor,
                          attack_params={"ensemble": dict(self.ensemble)} if self.ensemble else {},
-                         target_params={v.target: dict(v.params)} if v.params else {})
+                         target_params={v.target: dict(v.params)} if v.params else {},
+                         monitors=list(self.monitors), monitor_aware=self.monitor_aware)
 
 
 def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bool = True,
@@ -479,6 +485,20 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
                 "queries": float(e.get("extra.queries", pd.Series(np.nan)).mean()),
                 "weak_gradient": float(e.get("extra.weak_gradient", pd.Series(0.0)).mean()),
             }
+            if _ALARM in e:  # monitors: what of the worst case reaches the planner unannounced
+                alarms = [e[_ALARM].to_numpy(dtype=float)] + [
+                    x.set_index("sample_id").reindex(e.sample_id.to_numpy())[_ALARM]
+                    .to_numpy(dtype=float) for x in xs.values() if _ALARM in x]
+                errs = [ens_err] + [x.set_index("sample_id").reindex(e.sample_id.to_numpy())
+                                    .trans_err_xy.to_numpy(dtype=float)
+                                    for x in xs.values() if _ALARM in x]
+                und = np.nanmax(np.column_stack([np.where((a > 0) | ~np.isfinite(x), 0.0, x)
+                                                 for a, x in zip(alarms, errs, strict=True)]),
+                                axis=1)
+                row["detected_share"] = float(np.mean(alarms[0][counted] > 0)) \
+                    if counted.any() else math.nan
+                row["undetected_mean"] = float(np.mean(und[counted])) if counted.any() \
+                    else math.nan
             row["over_uniform"] = row["worst_mean"] / row["uniform_mean"] \
                 if row["uniform_mean"] and math.isfinite(row["uniform_mean"]) else math.nan
             if extra_attacks:
@@ -595,11 +615,13 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
         "",
     ]
     mid = budgets[len(budgets) // 2]
+    monitored = "undetected_mean" in board
     head = ["#", f"rank 95% CI (λ={mid:g})", "variant", "clean mean [m]"]
     for lam in budgets:
         head += [f"λ={lam:g}: mean [m]", "95% CI [m]", "median [m]", "ampl.", "held",
                  "× uniform"]
         head += ["ensemble [m]"] if extras else []
+        head += ["detected", "undetected [m]"] if monitored else []
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k, v in enumerate(order, 1):
         r = board[board.variant == v].set_index("budget")
@@ -608,14 +630,24 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
                  _fmt(r.clean_mean.iloc[0], 3)]
         for lam in budgets:
             if lam not in r.index:
-                cells += ["-"] * (7 if extras else 6)
+                cells += ["-"] * (6 + bool(extras) + 2 * monitored)
                 continue
             x = r.loc[lam]
             cells += [_fmt(x.worst_mean), f"{_fmt(x.worst_lo)}-{_fmt(x.worst_hi)}",
                       _fmt(x.worst_median), _fmt(x.amplification),
                       f"{100 * x.held_share:.0f}%", _fmt(x.over_uniform, 1)]
             cells += [_fmt(x.ensemble_mean)] if extras else []
+            cells += [f"{100 * x.detected_share:.0f}%", _fmt(x.undetected_mean)] \
+                if monitored else []
         lines.append("| " + " | ".join(cells) + " |")
+    if monitored:
+        lines += ["", f"Monitors: {', '.join(f'`{m}`' for m in cfg.monitors)}, calibrated per "
+                  "variant on clean train-split scans (each variant's manifest.json, `monitors`); "
+                  "the attacks " + ("maximise the undetected error (`--monitor-aware`)"
+                                    if cfg.monitor_aware else "ignore them") +
+                  ". *detected*: share of scans whose ensemble result raised an alarm; "
+                  "*undetected*: mean over scans of the largest error that raised none (0 where "
+                  "every attack's result was flagged)."]
     lines += ["", "Intervals: bootstrap over the scans (1000 resamples, the same for every "
               "variant), 2.5-97.5 %; rank 1 is the most robust. Variants whose rank intervals "
               "overlap are not told apart by these scans."]

@@ -291,6 +291,11 @@ class LeaderboardOptions(Options):
     compare_with: Name | None = Field(
         None, description="Another board's folder (e.g. the other domain's): state the agreement "
                           "of the two rankings (Kendall's tau) on this board.")
+    monitors: Annotated[list[Name], _list("monitors")] = Field(
+        [], description="Integrity monitors ('all' or comma-separated): the board adds each "
+                        "variant's detection rate and undetected worst case. [default: none]")
+    monitor_aware: bool = Field(False, description="The attacks maximise the undetected error "
+                                                   "(needs --monitors).")
     quiet: bool = Field(False, description="No progress output.")
 
 
