@@ -72,8 +72,10 @@ def test_pct_reference_larger_with_non_converged_runs(df):
     assert "% Ours is larger incl. non-converged runs" in text
     shares = all_pairs_frame(df).set_index("Method")
     assert list(shares.index) == ["Original", "Normal"]  # the reference has no row
-    assert shares.loc["Normal", "λ=1"] == "33.3% of 6"
-    assert re.search(r"\| Normal +\| 33.3% of 6", text)
+    assert shares.loc["Normal", "λ=1"] == "33.3% [10-70] of 6"  # 2 of 6, Wilson 9.7-70.0%
+    assert re.search(r"\| Normal +\| 33.3% \[10-70\] of 6", text)
+    assert "% Ours is larger over converged pairs (the table's %) with its 95% interval" in text
+    assert re.search(r"\| Normal +\| 25.0% \[5-70\] of 4", text)  # 1 of 4
 
 
 def test_displacement_audit_footer(df):
@@ -120,7 +122,7 @@ def test_formats_parse_back(df):
     md = table1(df, "md")
     assert "| Method" in md and "Runs per cell: runs / converged / pairs" in md
     tex = table1(df, "latex")
-    assert tex.startswith("\\begin{tabular}") and tex.count("\\begin{tabular}") == 3  # main, counts, shares
+    assert tex.startswith("\\begin{tabular}") and tex.count("\\begin{tabular}") == 4  # main, counts, 2 shares
     assert "Runs per cell: runs / converged / pairs" in tex and "% warning: normal" in tex
     with pytest.raises(InputError):
         render(table1_frame(df), "html")

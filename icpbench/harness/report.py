@@ -322,15 +322,40 @@ def counts_frame(df: pd.DataFrame, reference: str = "generator",
     return _counts_grid(table1_cells(df, reference, target), reference)
 
 
-def _all_pairs_grid(cells: dict[tuple[str, float], Cell], reference: str) -> pd.DataFrame:
-    """All-pairs shares from computed cells (see :func:`all_pairs_frame`)."""
+def share_interval(pct: float, n: int, level: float = 0.95) -> tuple[float, float]:
+    """The ``level`` interval [%] of a share ``pct`` [%] of ``n`` pairs: Wilson's score interval
+    for a binomial proportion (E. B. Wilson, "Probable inference, the law of succession, and
+    statistical inference", JASA 1927), from ``scipy.stats.binomtest``; it stays inside [0, 100]
+    and is not degenerate at 0% or 100%, where a 10-pair cell needs it most."""
+    from scipy.stats import binomtest
+
+    k = int(round(pct * n / 100.0))
+    ci = binomtest(k, n).proportion_ci(confidence_level=level, method="wilson")
+    return 100.0 * float(ci.low), 100.0 * float(ci.high)
+
+
+def _share_text(pct: float | None, n: int, decimals: int = 1) -> str:
+    """``<share>% [<lo>-<hi>] of <pairs>``, the 95% Wilson interval in brackets."""
+    if pct is None or n == 0:
+        return EMPTY
+    lo, hi = share_interval(pct, n)
+    return f"{pct:.{decimals}f}% [{lo:.0f}-{hi:.0f}] of {n}"
+
+
+def _all_pairs_grid(cells: dict[tuple[str, float], Cell], reference: str,
+                    converged: bool = False) -> pd.DataFrame:
+    """Shares with their 95% intervals from computed cells, over all pairs with a finite error
+    (see :func:`all_pairs_frame`) or, with ``converged``, over the pairs where both converged
+    (the main table's basis)."""
     attacks = attack_order(sorted({a for a, _ in cells}), reference)
     if reference not in attacks:
         return pd.DataFrame()
 
     def text(a: str, b: float, c: Cell | None) -> dict[str, str]:
-        ok = c is not None and c.pct_all is not None
-        return {f"λ={b:g}": f"{c.pct_all:.1f}% of {c.n_pairs_all}" if ok else EMPTY}
+        if c is None:
+            return {f"λ={b:g}": EMPTY}
+        return {f"λ={b:g}": _share_text(c.pct_ref_larger, c.n_pairs) if converged else
+                _share_text(c.pct_all, c.n_pairs_all)}
 
     return _grid(cells, reference, text, [a for a in attacks if a != reference])
 
@@ -338,8 +363,9 @@ def _all_pairs_grid(cells: dict[tuple[str, float], Cell], reference: str) -> pd.
 def all_pairs_frame(df: pd.DataFrame, reference: str = "generator",
                     target: str | None = None) -> pd.DataFrame:
     """"% Ours is Larger" over every pair with a finite error (non-converged runs at their final
-    error), one column "λ=<b>" per budget, cells ``<share>% of <pairs>``; the reference's row left
-    out, and no rows at all when the reference was not run."""
+    error), one column "λ=<b>" per budget, cells ``<share>% [<lo>-<hi>] of <pairs>`` with the 95%
+    Wilson interval (:func:`share_interval`); the reference's row left out, and no rows at all
+    when the reference was not run."""
     return _all_pairs_grid(table1_cells(df, reference, target), reference)
 
 
@@ -687,8 +713,10 @@ def table1(df: pd.DataFrame, fmt: Format = "md", reference: str = "generator",
     sections = [
         (f"Runs per cell: {COUNTS_HEADER} (runs: all; converged: the runs behind mean ± std; pairs: "
          f"pairs with {name} where both converged, behind the %)", _counts_grid(cells, reference)),
-        (f"% {name} is larger incl. non-converged runs (all pairs with a finite error; share of "
-         "pairs)", _all_pairs_grid(cells, reference)),
+        (f"% {name} is larger over converged pairs (the table's %) with its 95% interval "
+         "(Wilson; share [interval] of pairs)", _all_pairs_grid(cells, reference, True)),
+        (f"% {name} is larger incl. non-converged runs (all pairs with a finite error; share "
+         "[95% Wilson interval] of pairs)", _all_pairs_grid(cells, reference)),
         (f"Displacement audit: largest point displacement [{unit}] / mean share of points moved "
          "beyond λ", displacement_frame(sub, reference, unit)),
         ("Attack time per scan [s], mean over all budgets", timing_frame(sub, reference)),
