@@ -287,6 +287,9 @@ def test_worst_of_all_attacks_takes_the_per_scan_maximum_and_names_the_winner(sp
     text = table1(sparse, "md")
     assert re.search(r"^\| Worst of all attacks +\| 5\.00 ± 1\.00 ", text, flags=re.M)  # converged
     assert "won by λ=1: generator 2, normal 1, uniform 1; λ=2: generator 1" in text
+    # the worst of all includes Ours: its "% Ours is larger" is not a comparison (0% would mislead)
+    assert re.search(r"^\| Worst of all attacks +\| 5\.00 ± 1\.00 +\| - ", text, flags=re.M)
+    assert not re.search(r"^\| Worst of all attacks +\| [0-9.]+% \[", text, flags=re.M)
 
 
 def _write_run(folder, frame, dataset):

@@ -250,7 +250,7 @@ def _pct_text(attack: str, cell: Cell | None, reference: str, has_ref: bool) -> 
     """A "% Ours is Larger" cell: the share with two decimals, "-" for the reference itself."""
     if not has_ref:
         return f"({reference} not run)"
-    if attack == reference:
+    if attack in (reference, WORST):  # the worst of all includes the reference: never below it
         return "-"
     return EMPTY if cell is None else format_figure(pct_figure(cell), 2, "%")
 
@@ -307,7 +307,7 @@ def _counts_grid(cells: dict[tuple[str, float], Cell], reference: str) -> pd.Dat
     def text(a: str, b: float, c: Cell | None) -> dict[str, str]:
         if c is None:
             return {f"λ={b:g}": "0 / 0 / 0"}
-        pairs = str(c.n_pairs) if has_ref and a != reference else "-"
+        pairs = str(c.n_pairs) if has_ref and a not in (reference, WORST) else "-"
         return {f"λ={b:g}": f"{c.runs} / {c.n} / {pairs}"}
 
     return _grid(cells, reference, text)
@@ -357,7 +357,7 @@ def _all_pairs_grid(cells: dict[tuple[str, float], Cell], reference: str,
         return {f"λ={b:g}": _share_text(c.pct_ref_larger, c.n_pairs) if converged else
                 _share_text(c.pct_all, c.n_pairs_all)}
 
-    return _grid(cells, reference, text, [a for a in attacks if a != reference])
+    return _grid(cells, reference, text, [a for a in attacks if a not in (reference, WORST)])
 
 
 def all_pairs_frame(df: pd.DataFrame, reference: str = "generator",
