@@ -173,3 +173,10 @@ def test_a_corrupted_cell_is_refused_naming_file_line_and_column(small_run, tmp_
         load_results(out)
     text = str(exc.value)
     assert f"results.csv, line 3, column {column!r}" in text and needle in text, text
+
+
+def test_a_folder_of_its_kind_is_left_as_it_is(tmp_path):
+    """A committed run folder made before the marker is resumed without a new file in it."""
+    (tmp_path / "results.csv").write_text("x\n")
+    claim(tmp_path, "run")
+    assert not (tmp_path / MARKER).exists()

@@ -109,11 +109,11 @@ def check_owner(path: str | Path, kind: str, flag: str = "--out") -> str | None:
 
 def claim(path: str | Path, kind: str, flag: str = "--out") -> Path:
     """:func:`check_owner`, then make ``path`` the folder of ``kind`` (created, and marked if it
-    was new). Returns the path."""
+    was new: a folder that already belongs to ``kind`` is left as it is). Returns the path."""
     found = check_owner(path, kind, flag)
     p = Path(path)
     p.mkdir(parents=True, exist_ok=True)
-    if found is None or not (p / MARKER).exists():
+    if found is None:  # a new folder; one of its kind already says so by its files
         write_file(p / MARKER, kind + "\n")
     return p
 
