@@ -17,6 +17,8 @@ counterpart for; their items are then checked by the model like any other value.
 
 from __future__ import annotations
 
+import types
+import typing
 from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -159,8 +161,6 @@ def _bounds(meta: list[Any]) -> str:
 
 
 def _base(tp: Any) -> str:
-    import typing
-
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin is Annotated:
         inner, meta = args[0], list(args[1:])
@@ -171,7 +171,7 @@ def _base(tp: Any) -> str:
             "a non-empty text" if bounds == "non-empty" else words)
     if origin is Literal:
         return "one of " + ", ".join(map(str, args))
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+    if origin in (typing.Union, types.UnionType):
         kinds = [a for a in args if a is not type(None)]
         text = " or ".join(_base(a) for a in kinds)
         return text + (" or null" if len(kinds) < len(args) else "")

@@ -48,18 +48,25 @@ def build_monitors(cfg: RunConfig) -> list[Monitor]:
     return [registry.monitors.get(n)(**cfg.monitor_params.get(n, {})) for n in cfg.monitors]
 
 
-def _clean_scores(target: Target, monitors: list[Monitor], batch: Batch,
-                  prepare: Callable[[Target, Batch], list]) -> dict[str, np.ndarray]:
-    """Every monitor's scores of ``target``'s clean registrations of ``batch``."""
-    with torch.no_grad():
-        reg = target.register(batch.scans, prepare(target, batch), batch.T_init)
+def batch_scores(monitors: list[Monitor], batch: Batch, scans: torch.Tensor,
+                 reg: Registration) -> dict[str, np.ndarray]:
+    """Every monitor's scores ``{name: (B,)}`` of the registration ``reg`` of ``scans``
+    (B, N, 3, sensor frame) of ``batch``'s samples, each monitor with its simulated motion prior."""
     T = reg.T.detach().to(torch.float64).numpy()
-    inputs = registration_inputs(batch, batch.scans.detach().to(torch.float64).numpy(), T, reg,
+    inputs = registration_inputs(batch, scans.detach().to(torch.float64).numpy(), T, reg,
                                  range(len(batch)))
     T_gt = batch.T_gt.detach().to(torch.float64).numpy()
     priors = {m.name: [m.motion_prior(T_gt[b], s.id) for b, s in enumerate(batch.samples)]
               for m in monitors}
     return score_inputs(monitors, inputs, priors)
+
+
+def _clean_scores(target: Target, monitors: list[Monitor], batch: Batch,
+                  prepare: Callable[[Target, Batch], list]) -> dict[str, np.ndarray]:
+    """Every monitor's scores of ``target``'s clean registrations of ``batch``."""
+    with torch.no_grad():
+        reg = target.register(batch.scans, prepare(target, batch), batch.T_init)
+    return batch_scores(monitors, batch, batch.scans, reg)
 
 
 def calibrate_run(cfg: RunConfig, targets: Mapping[str, Target],
@@ -149,13 +156,7 @@ def monitor_extra(monitors: list[Monitor], batch: Batch, scans: torch.Tensor, re
                   ) -> list[dict[str, float]]:
     """Per sample of ``batch``, the ``extra`` entries of its row: each monitor's score and alarm
     on the registration ``reg`` of ``scans`` (B, N, 3), and whether any monitor fired."""
-    T = reg.T.detach().to(torch.float64).numpy()
-    inputs = registration_inputs(batch, scans.detach().to(torch.float64).numpy(), T, reg,
-                                 range(len(batch)))
-    T_gt = batch.T_gt.detach().to(torch.float64).numpy()
-    priors = {m.name: [m.motion_prior(T_gt[b], s.id) for b, s in enumerate(batch.samples)]
-              for m in monitors}
-    scores = score_inputs(monitors, inputs, priors)
+    scores = batch_scores(monitors, batch, scans, reg)
     rows = []
     for b in range(len(batch)):
         d: dict[str, float] = {}
