@@ -181,6 +181,12 @@ class Attack(ABC):
     #: and defines no ``__init__`` is its base attack with these defaults (same settings, same
     #: code); e.g. ``pgd-warm`` is ``pgd`` with the cheaper oracle's defaults.
     preset: ClassVar[Mapping[str, Any]] = {}
+    #: Rough cost class per scan, the order in which ``--attacks all`` runs the attacks (cheapest
+    #: first, ties by name) so that an interrupted run keeps the cheap rows: 0 a few passes of
+    #: the scan (``none``, ``uniform``); 1 a network or a handful of ICP runs; 2 a budget of
+    #: gradient steps or target queries; 3 queries each planned at some cost (``valley``); 4 an
+    #: ensemble that re-runs other attacks.
+    cost_class: ClassVar[int] = 1
 
     def __init__(self, *, strict: bool = False, **params: Any) -> None:
         self.strict = bool(strict)

@@ -139,6 +139,7 @@ class EnsembleAttack(Attack):
     """
 
     name: ClassVar[str] = "ensemble"
+    cost_class: ClassVar[int] = 4
     description: ClassVar[str] = (
         "Per scan, the worst error on the evaluated target over uniform, sector-adaptive, PGD "
         "(through the target or its replica), spoof, valley and a query search from the best"

@@ -14,6 +14,7 @@ class NoAttack(Attack):
     """No perturbation: returns the clean scans (the 'Original' row)."""
 
     name: ClassVar[str] = "none"
+    cost_class: ClassVar[int] = 0
     description: ClassVar[str] = "No perturbation: the clean scan (Table 1's 'Original' row)"
     budget_invariant: ClassVar[bool] = True
 

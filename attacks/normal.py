@@ -36,6 +36,7 @@ class NormalTranslationAttack(Attack):
     """Move each point by lambda along its map normal projected onto the x-y plane."""
 
     name: ClassVar[str] = "normal"
+    cost_class: ClassVar[int] = 0
     description: ClassVar[str] = (
         "Move every point by lambda along its associated map normal projected onto x-y"
     )

@@ -58,6 +58,7 @@ class PGDAttack(Attack):
     """
 
     name: ClassVar[str] = "pgd"
+    cost_class: ClassVar[int] = 2
     description: ClassVar[str] = (
         "Per-scan projected gradient ascent through the differentiable surrogate (oracle)"
     )

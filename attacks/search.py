@@ -70,6 +70,7 @@ class QuerySearchAttack(Attack):
     """
 
     name: ClassVar[str] = "search"
+    cost_class: ClassVar[int] = 2
     description: ClassVar[str] = (
         "Score-based random search over per-region normal/rigid displacements with a query budget; "
         "queries only, any target (beyond the paper)"

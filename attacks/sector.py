@@ -60,6 +60,7 @@ class SectorAttack(Attack):
     """
 
     name: ClassVar[str] = "sector"
+    cost_class: ClassVar[int] = 0
     description: ClassVar[str] = (
         "Analytic worst case of one point-to-plane step (Laconte et al. RA-L 2024): "
         "every point moved by lambda along its map normal"

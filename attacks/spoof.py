@@ -120,6 +120,7 @@ class SpoofAttack(Attack):
     """
 
     name: ClassVar[str] = "spoof"
+    cost_class: ClassVar[int] = 2
     description: ClassVar[str] = (
         "Make the scan agree with the map at a pose shifted by D (each point within lambda) and "
         "search D with queries; any target (beyond the paper)"

@@ -30,6 +30,7 @@ class UniformTranslationAttack(Attack):
     """Translate every point of the scan by lambda along one random horizontal direction."""
 
     name: ClassVar[str] = "uniform"
+    cost_class: ClassVar[int] = 0
     description: ClassVar[str] = "Translate the whole scan by lambda in a random x-y direction"
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate, generator) -> torch.Tensor:

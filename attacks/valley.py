@@ -198,6 +198,7 @@ class ValleyAttack(SpoofAttack):
     """
 
     name: ClassVar[str] = "valley"
+    cost_class: ClassVar[int] = 3
     description: ClassVar[str] = (
         "Spoof a pose shifted by D, each point's move (within lambda) chosen so the target's model "
         "cost falls along the line to D; D searched with queries; any target (beyond the paper)"

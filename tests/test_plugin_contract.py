@@ -98,6 +98,15 @@ def test_hooks_are_declared_on_the_bases_with_defaults():
     assert short.config.cauchy_c == t.config.cauchy_c
 
 
+def test_all_attacks_run_cheapest_first_and_the_ensemble_last():
+    cfg = RunConfig(dataset="synthetic").validate()  # attacks: all
+    classes = [registry.attacks.get(a).cost_class for a in cfg.attacks]
+    assert classes == sorted(classes)
+    assert cfg.attacks[0] == "none" and cfg.attacks[-1] == "ensemble"
+    named = RunConfig(dataset="synthetic", attacks=["ensemble", "none"]).validate()
+    assert named.attacks == ["ensemble", "none"]  # a list the user wrote keeps its order
+
+
 @pytest.mark.parametrize("cfg, needle", [
     (dict(attacks=["pgd"], attack_params={"pgd": {"step": 5}}),
      r"unknown setting\(s\) 'step' for attack 'pgd'; valid: .*icp_iterations, .*step_size, "

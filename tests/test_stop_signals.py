@@ -160,8 +160,8 @@ def _wait_for(mark: Path, proc: subprocess.Popen) -> None:
     ("build", signal.SIGTERM, "local", False),     # the run's targets being built
     ("grid", signal.SIGINT, "local", True),        # one unit's rows saved, the next running
     ("grid", signal.SIGTERM, "local", True),
-    ("grid", signal.SIGINT, "processes", False),   # scans in flight in worker processes
-    ("grid", signal.SIGTERM, "processes", False),
+    ("grid", signal.SIGINT, "processes", True),    # scans in flight in worker processes; the
+    ("grid", signal.SIGTERM, "processes", True),   # unit every sample finished is saved
 ])
 def test_a_stop_signal_gives_one_true_line_and_leaves_no_process(tmp_path, phase, sig, executor,
                                                                  saved):

@@ -13,7 +13,8 @@ file does not depend on the executor (wall-time columns aside):
   ``concurrent.futures``; no dependency), one worker each, fed one *sample* at a time: a batch is
   cut into single-sample items (a sample's rows do not depend on its batch, up to floating-point
   rounding: a batch of one sums its products in another order) and its rows are put back in the
-  local executor's order, so a short run of a few batches still uses every core.
+  local executor's order, so a short run of a few batches still uses every core. A worker sends a
+  sample's rows back unit by unit, so each unit is written once every sample of its batch has it.
   Workers: ``ICPBENCH_WORKERS`` if set, else the machine's CPUs divided by the torch threads.
 * ``ray``: a pool of Ray actors (Moritz et al., "Ray: A Distributed Framework for Emerging AI
   Applications", OSDI 2018), each holding its own worker, on the Ray cluster this process connects to
@@ -33,6 +34,8 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import pickle
+import queue
 import signal
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
@@ -46,6 +49,11 @@ from icpbench.core.errors import IcpbenchError, InputError, PluginUnavailableErr
 from icpbench.harness.results import BAD_INPUT
 
 Row = dict[str, Any]
+
+#: Seconds the process executor waits on its queue before it checks its workers.
+POLL_S = 0.5
+#: Seconds after every awaited worker ended without its rows arriving before that is an error.
+LOST_AFTER_S = 30.0
 
 #: Executors by name (``icpbench run --executor NAME``).
 EXECUTORS: tuple[str, ...] = ("local", "processes", "ray")
@@ -151,16 +159,17 @@ class ProcessExecutor(Executor):
         n = min(n, n_pieces)
         self._used_workers = n
         ctx = multiprocessing.get_context("spawn")
+        # each worker sends a sample's rows unit by unit through this queue as soon as a unit is
+        # done, so a unit is written when every sample of its batch has it (not when the batch's
+        # last unit is done): a long run of costly attacks saves, and shows, its progress
+        channel = ctx.Queue()
         pool = ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_process_init,
-                                   initargs=(worker.factory(), self.threads))
+                                   initargs=(worker.factory(), self.threads, channel))
         try:
             with _stop_signals_held():  # the pool starts its processes in submit()
-                futures = [[pool.submit(_process_run, piece) for piece in group]
-                           for group in pieces]
-            for item, group in zip(items, futures, strict=True):
-                per_sample = [self._result(f) for f in group]
-                for k in range(len(item.units)):
-                    yield item, k, merge_sample_rows([rows[k] for rows in per_sample])
+                futures = [pool.submit(_process_run, (i, s), piece)
+                           for i, group in enumerate(pieces) for s, piece in enumerate(group)]
+            yield from self._in_order(items, pieces, channel, futures)
         except BaseException:
             # interrupted (Ctrl-C) or failed: stop the scans in flight now rather than wait for
             # them; their rows were not written, so a resumed run computes them again
@@ -171,13 +180,54 @@ class ProcessExecutor(Executor):
             for proc in procs:
                 proc.terminate()
             _reap(procs)
+            channel.cancel_join_thread()
             raise
         pool.shutdown(wait=True)
+        channel.close()
+
+    def _in_order(self, items: Sequence[WorkItem], pieces: Sequence[Sequence[WorkItem]],
+                  channel: Any, futures: Sequence[Future]
+                  ) -> Iterator[tuple[WorkItem, int, list[Row]]]:
+        """Yield every item's units in grid order, each as soon as all of its samples sent it.
+
+        A sample whose worker raised sends its error after the units it finished (one queue per
+        worker keeps that order), so the error is raised when its unit's turn comes, after the
+        rows the local executor would have written first."""
+        got: dict[tuple[int, int], dict[int, list[Row]]] = {
+            (i, s): {} for i, group in enumerate(pieces) for s in range(len(group))}
+        failed: dict[tuple[int, int], BaseException] = {}
+        flat = {key: j for j, key in enumerate(got)}  # futures are in the same order
+        quiet = 0  # polls in a row that found the queue empty after the awaited samples ended
+        for i, item in enumerate(items):
+            keys = [(i, s) for s in range(len(pieces[i]))]
+            for k in range(len(item.units)):
+                while not all(k in got[key] for key in keys):
+                    errs = [failed[key] for key in keys if key in failed and k not in got[key]]
+                    if errs:
+                        raise errs[0]
+                    try:
+                        key, unit, payload = channel.get(timeout=POLL_S)
+                    except queue.Empty:
+                        for f in futures:  # a worker process that died sends nothing
+                            if f.done() and f.exception() is not None:
+                                self._result(f)
+                        waited = [futures[flat[key]] for key in keys if k not in got[key]]
+                        quiet = quiet + 1 if all(f.done() for f in waited) else 0
+                        if quiet * POLL_S > LOST_AFTER_S:  # finished, yet its rows never came
+                            raise IcpbenchError("a worker process finished without sending its "
+                                                "rows; re-run the same command to resume") from None
+                        continue
+                    quiet = 0
+                    if unit is None:
+                        failed[key] = payload
+                    else:
+                        got[key][unit] = payload
+                yield item, k, merge_sample_rows([got[key].pop(k) for key in keys])
 
     @staticmethod
-    def _result(future: Future) -> list[list[Row]]:
+    def _result(future: Future) -> None:
         try:
-            return future.result()
+            future.result()
         except BrokenProcessPool as exc:
             raise IcpbenchError(f"a worker process died ({exc}); re-run the same command to "
                                 "resume") from exc
@@ -243,12 +293,13 @@ def _stop_signals_held() -> Iterator[None]:
 
 _PROCESS_WORKER: Any = None
 _PROCESS_ERROR: Exception | None = None
+_PROCESS_CHANNEL: Any = None
 
 
-def _process_init(factory: Callable[[], Worker], threads: int) -> None:
-    """Pool initializer: build this process's worker (a failure is kept and raised by each item,
-    instead of breaking the pool with no message)."""
-    global _PROCESS_WORKER, _PROCESS_ERROR
+def _process_init(factory: Callable[[], Worker], threads: int, channel: Any) -> None:
+    """Pool initializer: build this process's worker (a failure is kept and sent by each item,
+    instead of breaking the pool with no message) and keep the queue its rows go back by."""
+    global _PROCESS_WORKER, _PROCESS_ERROR, _PROCESS_CHANNEL
     import torch
 
     # Ctrl-C reaches the whole process group: only the driver handles it (it stops the pool);
@@ -257,16 +308,27 @@ def _process_init(factory: Callable[[], Worker], threads: int) -> None:
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     torch.set_num_threads(threads)
+    _PROCESS_CHANNEL = channel
     try:
         _PROCESS_WORKER = factory()
     except Exception as exc:
         _PROCESS_ERROR = exc
 
 
-def _process_run(item: WorkItem) -> list[list[Row]]:
-    if _PROCESS_ERROR is not None:
-        raise _PROCESS_ERROR
-    return list(_PROCESS_WORKER.run(item))
+def _process_run(key: tuple[int, int], item: WorkItem) -> None:
+    """Compute one sample's units; send ``(key, k, rows)`` per unit k as it is done, then
+    ``(key, None, error)`` if the worker raised."""
+    try:
+        if _PROCESS_ERROR is not None:
+            raise _PROCESS_ERROR
+        for k, rows in enumerate(_PROCESS_WORKER.run(item)):
+            _PROCESS_CHANNEL.put((key, k, rows))
+    except Exception as exc:
+        try:
+            pickle.dumps(exc)
+        except Exception:  # the queue could not carry it: its text still reaches the driver
+            exc = IcpbenchError(f"{type(exc).__name__}: {exc}")
+        _PROCESS_CHANNEL.put((key, None, exc))
 
 
 class RayExecutor(Executor):

@@ -151,7 +151,10 @@ class RunConfig:
         for key in self.field_names():  # one model for every field, whoever set it
             setattr(self, key, getattr(checked, key))
         ds_cls = registry.datasets.get(self.dataset)
+        everything = list(self.attacks) == ["all"]
         self.attacks = registry.attacks.resolve(self.attacks)
+        if everything:  # cheapest first, the ensemble last (Attack.cost_class)
+            self.attacks.sort(key=lambda n: (registry.attacks.get(n).cost_class, n))
         self.targets = registry.targets.resolve(self.targets)
         needs = [a for a in self.attacks if registry.attacks.get(a).needs_surrogate]
         if self.surrogate != SELF and needs and \
