@@ -68,8 +68,8 @@ from icpbench import __version__  # noqa: E402
 from icpbench.core.errors import IcpbenchError  # noqa: E402
 from icpbench.harness import options as opts  # noqa: E402
 
-LB, MAP, VM, TR, OS = (opts.LeaderboardOptions, opts.MapOptions, opts.ValidateMapOptions,
-                       opts.TrainOptions, opts.ObjectStudyOptions)
+RC, LB, MAP, VM, TR, OS = (opts.RunCommandOptions, opts.LeaderboardOptions, opts.MapOptions,
+                           opts.ValidateMapOptions, opts.TrainOptions, opts.ObjectStudyOptions)
 
 
 def _opt(model: type[opts.Options], name: str, *decls: str, **kw: object) -> typer.models.OptionInfo:
@@ -159,12 +159,6 @@ def _nested(items: list[str] | None, flag: str) -> dict[str, dict]:
     return out
 
 
-def _out_dir(out: str, flag: str = "--out") -> Path:
-    if not out.strip():
-        raise typer.BadParameter(f"{flag} is empty; give a folder")
-    return Path(out)
-
-
 def _saved_rows(folders: Sequence[Path]) -> int:
     """Result rows saved in the results folders ``folders`` (0 where a folder has none)."""
     files = [f / "results.csv" for f in folders if (f / "results.csv").is_file()]
@@ -205,15 +199,6 @@ def _train_interrupted(out: Path | None) -> NoReturn:
     command resumes from it) or not, via :func:`_stopped`."""
     saved = out is not None and (out / "generator.pt").is_file()
     _stopped(f"the last finished epoch is saved in {out}" if saved else None, "checkpoint")
-
-
-def _check_reference(reference: str, attacks: list[str] | set[str]) -> None:
-    """``--reference`` must name a registered attack or one in the results."""
-    from icpbench.core import registry
-
-    if reference not in attacks and reference not in registry.attacks.names():
-        raise typer.BadParameter(f"--reference {reference!r} is not an attack; valid: "
-                                 f"{', '.join(sorted(set(registry.attacks.names()) | set(attacks)))}")
 
 
 @app.command("list")
@@ -276,10 +261,8 @@ def run(
         help="Samples per batch (results do not depend on it). [default: 8]")] = None,
     threads: Annotated[int | None, typer.Option(
         help="torch threads (1 is fastest on small CPUs). [default: 1]")] = None,
-    reference: Annotated[str, typer.Option(help="Reference attack of '% Ours is Larger'.")]
-    = "generator",
-    out: Annotated[str, typer.Option(help="Results directory (re-run to resume).")]
-    = "runs/latest",
+    reference: Annotated[str, _opt(RC, "reference")] = "generator",
+    out: Annotated[str, _opt(RC, "out")] = "runs/latest",
     attack_param: Annotated[list[str] | None, typer.Option(
         help="Attack setting NAME.KEY=VALUE, repeatable (e.g. generator.checkpoint=gen.pt).")]
     = None,
@@ -336,7 +319,8 @@ def run(
         from icpbench.harness.runner import RunConfig
         from icpbench.harness.runner import run as run_grid
 
-        out_dir = _out_dir(out)
+        own = RC.parse({"out": out, "reference": reference})
+        out_dir = Path(own.out)
         base = RunConfig.from_file(config) if config is not None else RunConfig()
         given: dict[str, object] = {  # list fields as the flag's text: RunOptions reads them
             "attacks": attacks, "targets": targets, "dataset": dataset, "budgets": budgets,
@@ -362,7 +346,7 @@ def run(
         base.dataset_params = {**base.dataset_params, **_flat(dataset_param, "--dataset-param")}
         _warn_plugin_modules()
         cfg = base.validate()
-        _check_reference(reference, cfg.attacks)
+        own.check_reference(cfg.attacks)
         run_grid(cfg, out_dir, progress=not quiet)
         df, corrupted = split_rows(load_results(out_dir))
         for t in cfg.targets:
@@ -428,7 +412,7 @@ def table(
                 render(corruption_frame(corrupted, target), "csv")
             _write_or_echo(text, out)
             return
-        _check_reference(reference, set(df["attack"]))
+        opts.RunCommandOptions(reference=reference).check_reference(set(df["attack"]))
         if transfer is not None:
             text = render(transfer_frame(df, transfer), format)
             if format != "csv" and "normal" in set(df["attack"]):

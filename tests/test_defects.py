@@ -233,7 +233,7 @@ def test_half_written_rows_are_ignored_and_nan_rows_are_not_converged(small_run,
 # -- 10. accepted nonsense -----------------------------------------------------------------------
 @pytest.mark.parametrize("args, needle", [
     (["run", "--dataset", "synthetic", "--budgets", ""], "(--budgets) must be a non-empty list"),
-    (["run", "--dataset", "synthetic", "--out", ""], "--out is empty"),
+    (["run", "--dataset", "synthetic", "--out", ""], "--out must be a non-empty text, got ''"),
     (["run", "--dataset", "synthetic", "--attacks", "none", "--reference", "bogus"],
      "--reference 'bogus' is not an attack"),
     (["run", "--dataset", "synthetic", "--attacks", "generator", "--attack-param",

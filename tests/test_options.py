@@ -108,7 +108,7 @@ def test_every_command_option_help_is_its_model_description():
     for cmd, model in COMMANDS.items():
         if cmd == "run":  # its options are the RunConfig fields, documented there
             continue
-        command = group.get_command(ctx, cmd)
+        command = group.get_command(ctx, cmd.split()[0])  # "run (output)": the run command
         helps = {p.name: getattr(p, "help", None) for p in command.params}
         for name in model.model_fields:
             assert helps[name] == model.help(name), (cmd, name)

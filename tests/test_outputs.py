@@ -83,6 +83,45 @@ def test_a_command_refuses_the_folder_of_another_command_and_writes_nothing(tmp_
     assert sorted(p.name for p in run.iterdir()) == before
 
 
+@pytest.mark.parametrize("what", ["file", "link", "broken link", "pipe"])
+@pytest.mark.parametrize("args", [
+    ["run", "--dataset", "synthetic", "--attacks", "none", "--samples", "1", "--quiet"],
+    ["map", "--dataset", "synthetic", "--attack", "uniform", "--samples", "1", "--quiet"],
+    ["validate-map", "--dataset", "synthetic", "--attacks", "uniform", "--quiet"],
+    ["train", "--preset", "quick-objects", "--quiet"],
+    ["leaderboard", "--variants", "p2point", "--samples", "1", "--quiet"],
+    ["object-study", "--model", "a=a.pt"],
+], ids=lambda a: a[0])
+def test_every_out_that_is_not_a_folder_is_refused_saying_what_it_is(tmp_path, args, what):
+    folder = tmp_path / "elsewhere"
+    folder.mkdir()
+    out = tmp_path / "out"
+    if what == "file":
+        out.write_text("mine")
+    elif what == "pipe":
+        os.mkfifo(out)
+    else:
+        out.symlink_to(folder if what == "link" else tmp_path / "gone")
+    res = cli.invoke(app, [*args, "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    word = {"file": "a file", "link": "a symbolic link", "broken link": "a symbolic link",
+            "pipe": "a device, pipe or socket"}[what]
+    assert "--out must be a non-empty text" not in res.output
+    assert f"{str(out)!r} is {word}, not a folder" in res.output, res.output
+    assert not any(folder.iterdir())  # nothing written through the link
+
+
+def test_a_path_is_classified_precisely(tmp_path):
+    (tmp_path / "f").write_text("x")
+    (tmp_path / "d").mkdir()
+    (tmp_path / "l").symlink_to(tmp_path / "d")
+    os.mkfifo(tmp_path / "p")
+    assert [outputs.path_kind(tmp_path / n) for n in ("f", "d", "l", "p", "m")] == \
+        ["file", "folder", "link", "other", "missing"]
+    with pytest.raises(InputError, match="is a symbolic link"):
+        claim(tmp_path / "l", "run")
+
+
 def test_run_refuses_a_board_folder(tmp_path):
     board = claim(tmp_path / "board", "leaderboard")
     res = cli.invoke(app, ["run", "--dataset", "synthetic", "--attacks", "none", "--samples", "1",

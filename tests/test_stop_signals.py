@@ -9,6 +9,7 @@ the machine's speed.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import signal
 import subprocess
@@ -20,6 +21,8 @@ import pandas as pd
 import pytest
 
 pytestmark = pytest.mark.slow  # each case starts the CLI (torch) in a subprocess
+NEEDS_RAY = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
+                               reason="Ray is not installed (pip install 'icpbench[ray]')")
 
 PLUGIN = '''
 import os
@@ -162,6 +165,7 @@ def _wait_for(mark: Path, proc: subprocess.Popen) -> None:
     ("grid", signal.SIGTERM, "local", True),
     ("grid", signal.SIGINT, "processes", True),    # scans in flight in worker processes; the
     ("grid", signal.SIGTERM, "processes", True),   # unit every sample finished is saved
+    pytest.param("grid", signal.SIGINT, "ray", False, marks=NEEDS_RAY),  # actors, a local cluster
 ])
 def test_a_stop_signal_gives_one_true_line_and_leaves_no_process(tmp_path, phase, sig, executor,
                                                                  saved):
@@ -169,7 +173,7 @@ def test_a_stop_signal_gives_one_true_line_and_leaves_no_process(tmp_path, phase
     try:
         _wait_for(tmp_path / "mark", proc)
         children = _descendants(proc.pid)
-        if executor == "processes":
+        if executor != "local":
             assert int((tmp_path / "mark").read_text()) in children  # a worker is computing
         line = _stopped(proc, sig, out, children)
         assert ("result row(s) are saved" in line) is saved

@@ -23,7 +23,15 @@ from collections.abc import Mapping
 from typing import Annotated, Any, ClassVar, Literal
 
 import annotated_types as at
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
 from pydantic.fields import FieldInfo
 
 from icpbench.core.errors import InputError
@@ -69,6 +77,20 @@ Name = Annotated[str, at.MinLen(1), BeforeValidator(lambda v: v.strip() if isins
 Count = Annotated[int, Field(ge=1, le=COUNT_MAX)]
 Seed = Annotated[int, Field(ge=S.SEED_MIN, le=S.SEED_MAX)]
 Budget = Annotated[float, Field(ge=S.BUDGET_MIN, le=S.BUDGET_MAX, allow_inf_nan=False)]
+
+
+def _folder(v: str) -> str:
+    """An output folder: a path that is missing or a folder (a file, a link, a device refused)."""
+    from icpbench.harness.outputs import PATH_WORDS, path_kind
+
+    what = path_kind(v)
+    if what not in ("missing", "folder"):
+        raise InputError(f"{v!r} is {PATH_WORDS[what]}, not a folder")
+    return v
+
+
+#: An output folder (``--out``): a non-empty path that is missing or a folder.
+OutFolder = Annotated[Name, AfterValidator(_folder)]
 #: An executor name, checked against the known ones by ``check_executor`` (its message lists them).
 Executor = Name
 Settings = dict[str, Any]
@@ -243,6 +265,24 @@ class RunOptions(Options):
     monitor_aware: bool = Field(False, description="Query attacks maximise the undetected error.")
 
 
+class RunCommandOptions(Options):
+    """The options of ``icpbench run`` that are not run settings (not :class:`RunOptions`, not
+    in a config file): where the rows go and the table's reference attack."""
+
+    out: OutFolder = Field("runs/latest", description="Results directory (re-run to resume).")
+    reference: Name = Field("generator", description="Reference attack of '% Ours is Larger'.")
+
+    def check_reference(self, attacks: list[str] | set[str]) -> None:
+        """``reference`` must name a registered attack or one of ``attacks`` (those of the
+        results). Raises InputError listing the valid names."""
+        from icpbench.core import registry
+
+        if self.reference not in attacks and self.reference not in registry.attacks.names():
+            valid = sorted(set(registry.attacks.names()) | set(attacks))
+            raise InputError(f"--reference {self.reference!r} is not an attack; valid: "
+                             f"{', '.join(valid)}")
+
+
 # -- icpbench leaderboard --------------------------------------------------------------------------
 class LeaderboardOptions(Options):
     """The options of ``icpbench leaderboard``."""
@@ -285,7 +325,7 @@ class LeaderboardOptions(Options):
         None, description="Attack seed; departs from the standard protocol. [default: 0]")
     executor: Executor = Field("local", description="local, processes or ray (see `icpbench "
                                                     "run`).")
-    out: Name | None = Field(
+    out: OutFolder | None = Field(
         None, description="Board folder (re-run to resume). [default: results/leaderboard, "
                           "results/leaderboard-unseen for the unseen domain]")
     compare_with: Name | None = Field(
@@ -316,7 +356,7 @@ class MapOptions(Options):
                           "6), e.g. sector.")
     attack_param: PluginSettings = Field({}, description="NAME.KEY=VALUE.")
     dataset_param: Settings = Field({}, description="KEY=VALUE.")
-    out: Name = Field("runs/map", description="Output directory (re-run to resume).")
+    out: OutFolder = Field("runs/map", description="Output directory (re-run to resume).")
     executor: Executor = Field(
         "local", description="local (one process), processes or ray (one worker per core); "
                              "results do not depend on it.")
@@ -358,7 +398,7 @@ class ValidateMapOptions(Options):
     dataset_param: Settings = Field({}, description="KEY=VALUE.")
     executor: Executor = Field("local", description="local, processes or ray; results do not "
                                                     "depend on it.")
-    out: Name = Field("runs/danger-validation", description="Output folder (re-run to resume).")
+    out: OutFolder = Field("runs/danger-validation", description="Output folder (re-run to resume).")
     quiet: bool = Field(False, description="No progress output.")
 
 
@@ -374,7 +414,7 @@ class TrainOptions(Options):
 
     preset: Name = Field("quick-lidar", description="quick-lidar, quick-lidar-soft, paper-lidar, "
                                                     "quick-objects, paper-objects.")
-    out: Name = Field("runs/train", description="Output directory (re-run to resume).")
+    out: OutFolder = Field("runs/train", description="Output directory (re-run to resume).")
     budgets: Annotated[list[Budget] | None, _list("budgets")] = Field(
         None, description="λ values; several = one conditioned model.")
     weights: Name | None = Field(None, description="xy, x-only or theta-only.")
@@ -430,7 +470,7 @@ class ObjectStudyOptions(Options):
         24, description="Held-out objects in the table.")
     figure_objects: Annotated[int, Field(ge=1, le=100_000)] = Field(
         4, description="Objects shown in the figure (at most --objects).")
-    out: Name = Field("runs/object-study", description="Output directory.")
+    out: OutFolder = Field("runs/object-study", description="Output directory.")
     soft_bound: bool = Field(False, description="Also run each model unprojected (the paper's "
                                                 "soft bound; may exceed the budget).")
 
@@ -444,9 +484,11 @@ class ObjectStudyOptions(Options):
 
 #: Every command's option model, by command name.
 COMMANDS: dict[str, type[Options]] = {
-    "run": RunOptions, "leaderboard": LeaderboardOptions, "map": MapOptions,
-    "validate-map": ValidateMapOptions, "train": TrainOptions, "object-study": ObjectStudyOptions,
+    "run": RunOptions, "run (output)": RunCommandOptions, "leaderboard": LeaderboardOptions,
+    "map": MapOptions, "validate-map": ValidateMapOptions, "train": TrainOptions,
+    "object-study": ObjectStudyOptions,
 }
 
 __all__ = ["COMMANDS", "MAX_LR", "LeaderboardOptions", "MapOptions", "ObjectStudyOptions",
-           "Options", "RunOptions", "TrainOptions", "ValidateMapOptions", "must"]
+           "Options", "OutFolder", "RunCommandOptions", "RunOptions", "TrainOptions",
+           "ValidateMapOptions", "must"]

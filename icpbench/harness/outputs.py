@@ -48,6 +48,26 @@ def _manifest(path: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) else None
 
 
+#: What a path names, in the words of messages (:func:`path_kind`).
+PATH_WORDS = {"missing": "missing", "file": "a file", "folder": "a folder",
+              "link": "a symbolic link", "other": "a device, pipe or socket"}
+
+
+def path_kind(path: str | Path) -> str:
+    """What ``path`` names, precisely: ``"missing"``, ``"file"``, ``"folder"``, ``"link"`` (a
+    symbolic link, whatever it points to, also a broken one) or ``"other"`` (a device, a pipe,
+    a socket). Links are never followed by the output guards: a link would let a command write
+    where its folder does not say."""
+    p = Path(path)
+    if p.is_symlink():
+        return "link"
+    if not p.exists():
+        return "missing"
+    if p.is_dir():
+        return "folder"
+    return "file" if p.is_file() else "other"
+
+
 def folder_kind(path: str | Path) -> str | None:
     """The kind (a key of :data:`KINDS`) of the output folder ``path``; None for a missing or
     empty folder, ``"other"`` for a folder holding files no icpbench command is known to write.
@@ -96,8 +116,12 @@ def check_owner(path: str | Path, kind: str, flag: str = "--out") -> str | None:
     if kind not in KINDS:
         raise ValueError(f"unknown output kind {kind!r}")
     p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise InputError(f"{flag} {p} is a file; {KINDS[kind]} writes into a folder")
+    what = path_kind(p)
+    if what == "link":
+        raise InputError(f"{flag} {p} is a symbolic link (to {p.resolve()}); give the folder "
+                         "itself: outputs never follow links")
+    if what not in ("missing", "folder"):
+        raise InputError(f"{flag} {p} is {PATH_WORDS[what]}; {KINDS[kind]} writes into a folder")
     found = folder_kind(p)
     if found not in (None, kind):
         whose = (f"the output of `{KINDS[found]}`" if found in KINDS else
