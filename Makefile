@@ -13,7 +13,7 @@ run: setup
 	bash scripts/main_job.sh
 
 test: setup
-	$(PY) -m pytest -q tests; rc=$$?; \
+	$(PY) -m pytest -q -n auto --dist loadfile tests; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 lint:

@@ -93,6 +93,9 @@ class GeneratorAttack(Attack):
         "Learned PointNet++ generator trained through differentiable ICP (the paper's 'Ours')"
     )
     wants_context: ClassVar[bool] = True
+    # the surrogate makes its iterated-sector prior and takes the refine steps: under
+    # --surrogate self that is each evaluated target itself (or its replica)
+    uses_surrogate: ClassVar[bool] = True
 
     param_ranges: ClassVar[dict[str, Range]] = {
         "refine_steps": Range(0, 100_000), "refine_step_size": Range(0.0, 2.0, lo_open=True),

@@ -18,6 +18,7 @@ from icpbench.attacks.search import QuerySearchAttack
 from icpbench.attacks.sector import SectorAttack
 from icpbench.attacks.sector_adaptive import SectorAdaptiveAttack
 from icpbench.attacks.uniform import UniformTranslationAttack
+from icpbench.core import registry
 from icpbench.core.errors import InputError
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
@@ -193,3 +194,16 @@ def test_ensemble_members_are_named_once_and_checked():
     for bad in ("uniform,bogus", "uniform,uniform", " , "):
         with pytest.raises(InputError, match="ensemble members"):
             EnsembleAttack(members=bad)
+
+
+def test_the_generator_takes_each_targets_own_surrogate_under_surrogate_self(tmp_path):
+    """``generator-refine`` steps through a surrogate: under ``--surrogate self`` that is each
+    target itself (an attack that uses a surrogate says so, or it would get none and fail)."""
+    assert all(registry.attacks.get(a).adaptive(True)
+               for a in ("generator", "generator-refine", "pgd", "sector-iter", "ensemble"))
+    cfg = RunConfig(dataset="lidar-sim", attacks=["generator-refine"], targets=["p2point"],
+                    budgets=[LAM], samples=1, surrogate="self",
+                    attack_params={"generator-refine": {"refine_steps": 1}})
+    run(cfg, tmp_path / "r", progress=False)
+    df = load_results(tmp_path / "r")
+    assert (df.status != "error").all(), df.error.tolist()

@@ -115,6 +115,8 @@ def _start(tmp_path: Path, phase: str, executor: str = "local") -> tuple[subproc
            "ICPBENCH_PLUGINS": "stop_test_plugin", "STOP_TEST_PHASE": phase,
            "STOP_TEST_MARK": str(tmp_path / "mark"), "ICPBENCH_WORKERS": "2",
            "OMP_NUM_THREADS": "1"}
+    if executor == "ray":  # a cluster of its own, never one another test process started
+        env["RAY_ADDRESS"] = "local"
     proc = subprocess.Popen(
         [sys.executable, "-m", "icpbench.cli", "run", "--dataset", "synthetic", "--dataset-param",
          "n_scan=600", "--dataset-param", "n_map=6000", "--attacks", "none,uniform", "--targets",
