@@ -135,3 +135,54 @@ def test_the_ensembles_spoof_and_valley_members_give_their_own_rows(scene_pair):
     assert set(winner) <= {MEMBERS.index(m) for m in ("uniform", "spoof", "valley")}
     assert (winner != MEMBERS.index("uniform")).any()  # spoofing beats the translation here
     np.testing.assert_array_equal(out.extra["queries"].numpy(), [1 + 6 + 4] * len(batch))
+
+
+class _SizeLog(QueryOracle):
+    """A query oracle that records the scan size of every query."""
+
+    def register(self, scans, index=None):
+        self.sizes = [*getattr(self, "sizes", []), int(np.asarray(scans).shape[1])]
+        return super().register(scans, index)
+
+
+@pytest.mark.parametrize("attack", [SpoofAttack, ValleyAttack])
+def test_screened_queries_register_a_share_and_the_whole_scan_decides(scene_pair, attack):
+    """With ``proxy`` the schedule registers a fixed share of the points; the ``verify`` best
+    offsets are re-queried whole, and the returned scan is whole, within the budget, with the
+    error the target gives it; ``proxy=1`` is the unscreened attack exactly."""
+    batch = scene_pair
+    target = PointToPointICP("lidar")
+    N = batch.scans.shape[1]
+    o = _SizeLog.prepared(target, batch)
+    out = attack(queries=6, proxy=0.25, verify=2).run(batch, LAM, oracle=o, generator=0)
+    assert o.sizes == [math.ceil(0.25 * N)] * 6 + [N] * 2
+    np.testing.assert_array_equal(out.extra["queries"].numpy(), [8, 8])
+    assert out.scans.shape == batch.scans.shape
+    assert float(out.stats["frac_over_budget"].max()) == 0.0
+    err = QueryOracle.prepared(target, batch).errors(out.scans)
+    np.testing.assert_allclose(err, out.extra["spoof_err"].numpy(), rtol=1e-9)
+    plain = attack(queries=6).run(batch, LAM, oracle=QueryOracle.prepared(target, batch),
+                                  generator=0)
+    same = attack(queries=6, proxy=1.0).run(batch, LAM, oracle=QueryOracle.prepared(target, batch),
+                                            generator=0)
+    torch.testing.assert_close(same.scans, plain.scans, rtol=0, atol=0)
+    assert "proxy" not in attack(queries=6).settings()  # unscreened settings stay as they were
+    for bad in ({"proxy": 0.0}, {"proxy": 1.5}, {"verify": 0}):
+        with pytest.raises(InputError):
+            attack(**bad)
+    # the ensemble screens its spoof and valley members with its own setting
+    name = attack.name
+    o = _SizeLog.prepared(target, batch)
+    ens = EnsembleAttack(members=name, **{f"{name}_queries": 6}, proxy=0.25, verify=2)
+    ens.run(batch, LAM, surrogate=None, generator=0, oracle=o)
+    assert o.sizes == [math.ceil(0.25 * N)] * 6 + [N] * 2
+    assert ens.settings()["proxy"] == 0.25 and "proxy" not in EnsembleAttack().settings()
+
+
+def test_an_oracle_of_whole_scans_is_never_screened(scene_pair):
+    class Whole(_SizeLog):
+        whole_scans_only = True
+
+    o = Whole.prepared(PointToPointICP("lidar"), scene_pair)
+    SpoofAttack(queries=3, proxy=0.25, verify=2).run(scene_pair, LAM, oracle=o, generator=0)
+    assert o.sizes == [scene_pair.scans.shape[1]] * 3
