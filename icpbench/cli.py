@@ -587,9 +587,12 @@ def danger_map(
     dataset_param: Annotated[list[str] | None, _opt(MAP, "dataset_param")] = None,
     out: Annotated[str, _opt(MAP, "out")] = "runs/map",
     executor: Annotated[str, _opt(MAP, "executor")] = "local",
+    monitors: Annotated[str | None, _opt(MAP, "monitors")] = None,
+    monitor_aware: Annotated[bool, _opt(MAP, "monitor_aware", "--monitor-aware")] = False,
     quiet: Annotated[bool, _opt(MAP, "quiet", "--quiet")] = False,
 ) -> None:
-    """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6)."""
+    """Worst-case error at every location of a route: CSVs and route maps (paper fig. 5/6); with
+    --monitors also the error that no integrity monitor catches."""
     out_dir: Path | None = None
     try:
         from icpbench.analysis.danger_map import write_maps
@@ -601,15 +604,17 @@ def danger_map(
                            samples=samples, compare=compare,
                            attack_param=_nested(attack_param, "--attack-param"),
                            dataset_param=_flat(dataset_param, "--dataset-param"), out=out,
-                           executor=executor, quiet=quiet))
+                           executor=executor, quiet=quiet, monitor_aware=monitor_aware,
+                           **({} if monitors is None else {"monitors": monitors})))
         from icpbench.harness.outputs import claim
 
-        out = out_dir = claim(o.out, "map")
         attack, budget, compare = o.attack, o.budget, o.compare
         attacks = [attack] + ([compare] if compare else [])
         cfg = RunConfig(dataset=o.dataset, attacks=attacks, targets=["p2plane"], budgets=[budget],
                         samples=o.samples, split=o.split, executor=o.executor,
-                        attack_params=o.attack_param, dataset_params=o.dataset_param)
+                        attack_params=o.attack_param, dataset_params=o.dataset_param,
+                        monitors=o.monitors, monitor_aware=o.monitor_aware).validate()
+        out = out_dir = claim(o.out, "map")  # after the checks: a refused map makes no folder
         run_grid(cfg, out / "run", progress=not quiet)
         summary = write_maps(load_results(out / "run"), attack, budget, out, compare)
         for name in attacks:
@@ -617,7 +622,10 @@ def danger_map(
             typer.echo(f"{name}: {s['locations']} locations, {s['passes']} passes, mean error "
                        f"{s['mean_trans_err_xy']:.2f} m, AUC open-vs-dense "
                        f"{s.get('auc_open_vs_dense', float('nan')):.3f}, pass rank correlation "
-                       f"{s['pass_rank_correlation']:.3f}")
+                       f"{s['pass_rank_correlation']:.3f}" + (
+                           f", undetected by the monitors {s['mean_undetected']:.2f} m "
+                           f"({s['detected_pct']:.0f}% of registrations detected)"
+                           if "mean_undetected" in s else ""))
         if compare:
             c = summary["comparison"]
             typer.echo(f"{attack} - {compare}: median {c['median']:.2f} m, IQR [{c['q1']:.2f}, "

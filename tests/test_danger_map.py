@@ -4,7 +4,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from icpbench.analysis.danger_map import auc, location_errors, pass_rank_correlation, write_maps
+from icpbench.analysis.danger_map import (
+    UNDETECTED_ALARM,
+    auc,
+    location_errors,
+    pass_rank_correlation,
+    write_maps,
+)
 from icpbench.core.errors import InputError
 
 
@@ -51,3 +57,39 @@ def test_missing_route_metadata_or_attack_raises():
         location_errors(df, "pgd", 1.0)
     with pytest.raises(InputError, match="route metadata"):
         location_errors(df.drop(columns=["meta.frame"]), "generator", 1.0)
+
+
+def test_with_monitors_the_undetected_map_is_drawn_beside_the_unmonitored_one(tmp_path):
+    """A run with monitors: per row the undetected error is the error where no monitor fired
+    and 0 where one did (or the pose is not finite); its map and mean join the summary."""
+    df = _results()
+    alarm = (df["meta.frame"] % 3 == 0).astype(float)  # every third place caught
+    df = df.assign(**{UNDETECTED_ALARM: alarm})
+    df.loc[df.index[1], "trans_err_xy"] = np.nan  # a diverged pose counts as caught
+    loc = location_errors(df, "generator", 1.0)
+    caught = (loc["detected"] > 0) | ~np.isfinite(loc["trans_err_xy"])
+    assert (loc.loc[caught, "undetected_err"] == 0).all()
+    np.testing.assert_array_equal(loc.loc[~caught, "undetected_err"],
+                                  loc.loc[~caught, "trans_err_xy"])
+    s = write_maps(df, "generator", 1.0, tmp_path)
+    assert "generator_undetected_map.png" in s["files"]
+    assert (tmp_path / "generator_undetected_map.png").stat().st_size > 0
+    assert s["generator"]["detected_pct"] == pytest.approx(100 * alarm[df.attack == "generator"]
+                                                           .mean())
+    assert 0 < s["generator"]["mean_undetected"] < s["generator"]["mean_trans_err_xy"]
+    plain = write_maps(_results(), "generator", 1.0, tmp_path / "plain")
+    assert "mean_undetected" not in plain["generator"]
+    assert not any("undetected" in f for f in plain["files"])
+
+
+def test_map_takes_monitors_through_the_layer(tmp_path):
+    from typer.testing import CliRunner
+
+    from icpbench.cli import app
+
+    res = CliRunner().invoke(app, ["map", "--dataset", "synthetic", "--attack", "uniform",
+                                   "--monitor-aware", "--out", str(tmp_path / "m"), "--quiet"])
+    assert res.exit_code == 2 and "--monitor-aware needs --monitors" in res.output, res.output
+    res = CliRunner().invoke(app, ["map", "--monitors", "bogus", "--out", str(tmp_path / "m")])
+    assert res.exit_code == 2 and "unknown monitor 'bogus'" in res.output, res.output
+    assert not (tmp_path / "m").exists()  # refused before its folder is made

@@ -20,8 +20,11 @@ from scipy import stats
 from icpbench.analysis.plotting import pyplot, save
 from icpbench.core.errors import InputError
 from icpbench.core.filenames import safe_component
+from icpbench.harness.run_monitors import ALARM
 
 LOCATION = "meta.frame"
+#: The column of a run with monitors that says whether any monitor fired on a row's registration.
+UNDETECTED_ALARM = "extra." + ALARM + "any"
 ERROR_CAP_M = 3.0  # colour scale cap of figure 5
 
 
@@ -41,11 +44,17 @@ def location_errors(df: pd.DataFrame, attack: str, budget: float) -> pd.DataFram
         have = sorted({(a, b) for a, b in zip(df["attack"], df["budget"], strict=True)})
         raise InputError(f"no rows for attack {attack!r} at budget {budget:g}; have {have}")
     d["lon_lat_max"] = np.maximum(d["rho_x"].abs(), d["rho_y"].abs())
+    if UNDETECTED_ALARM in d.columns:  # a run with monitors: what reaches the planner unannounced
+        err = d["trans_err_xy"].astype(float).to_numpy()
+        alarm = d[UNDETECTED_ALARM].astype(float).to_numpy() > 0
+        d["detected"] = alarm.astype(float)
+        d["undetected_err"] = np.where(alarm | ~np.isfinite(err), 0.0, err)
     cols = {LOCATION: "location", "meta.x": "x", "meta.y": "y", "meta.stretch": "stretch",
             "meta.pass": "pass"}
     out = d.rename(columns=cols)
     keep = [c for c in ("location", "pass", "x", "y", "stretch", "sample_id", "trans_err_xy",
-                        "lon_lat_max", "converged", "seed") if c in out.columns]
+                        "lon_lat_max", "converged", "seed", "detected", "undetected_err")
+            if c in out.columns]
     return out[keep].reset_index(drop=True)
 
 
@@ -53,6 +62,7 @@ def per_location_mean(loc: pd.DataFrame) -> pd.DataFrame:
     """Mean over passes (and seeds) per location; x, y, stretch of the first pass."""
     agg = {"x": "first", "y": "first", "trans_err_xy": "mean", "lon_lat_max": "mean",
            "converged": "mean"}
+    agg.update({c: "mean" for c in ("detected", "undetected_err") if c in loc.columns})
     if "stretch" in loc.columns:
         agg["stretch"] = "first"
     out = loc.groupby("location", as_index=False).agg(agg)
@@ -185,11 +195,20 @@ def write_maps(df: pd.DataFrame, attack: str, budget: float, out_dir: str | Path
                 files.append(str(plot_route(per_location_mean(loc[loc["pass"] == p]),
                                             out / f"{stem}_map_pass{safe_component(p)}.png",
                                             title=f"{name}, λ = {budget:g} m, pass {p}")))
+        if "undetected_err" in mean:
+            files.append(str(plot_route(
+                mean, out / f"{stem}_undetected_map.png", column="undetected_err",
+                label="undetected translation error [m]",
+                title=f"{name}, λ = {budget:g} m: error no monitor catches (0 where one "
+                      "fires), mean over passes")))
         rho, n = pass_rank_correlation(loc)
         s = {"locations": int(len(mean)), "passes": int(loc["pass"].nunique())
              if "pass" in loc else 1,
              "mean_trans_err_xy": float(mean["trans_err_xy"].mean()),
              "pass_rank_correlation": rho, "pass_rank_correlation_n": n}
+        if "undetected_err" in mean:
+            s["mean_undetected"] = float(mean["undetected_err"].mean())
+            s["detected_pct"] = 100.0 * float(loc["detected"].mean())
         if "stretch" in mean:
             s["auc_open_vs_dense"] = open_vs_dense_auc(mean)
             s["mean_by_stretch"] = mean.groupby("stretch")["trans_err_xy"].mean().to_dict()

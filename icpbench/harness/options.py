@@ -360,6 +360,12 @@ class MapOptions(Options):
     executor: Executor = Field(
         "local", description="local (one process), processes or ray (one worker per core); "
                              "results do not depend on it.")
+    monitors: Annotated[list[Name], _list("monitors")] = Field(
+        [], description="Integrity monitors ('all' or comma-separated, see `icpbench list`), "
+                        "calibrated as in `icpbench run`: the map of the error no monitor "
+                        "catches is drawn beside the unmonitored one. [default: none]")
+    monitor_aware: bool = Field(False, description="The attack maximises the undetected error "
+                                                   "(needs --monitors).")
     quiet: bool = Field(False, description="No progress output.")
 
 
