@@ -136,9 +136,6 @@ class EnsembleAttack(Attack):
         directions: headings each of them queries in its first sweep.
         screen: headings each of them ranks by the map's misfit before choosing which to query
             (:func:`~icpbench.attacks.spoof.misfit`; 0: an even fan, no screen).
-        proxy, verify: the screened queries of both (:mod:`icpbench.attacks.spoof`): the share
-            of the points each of their schedule's queries registers (1: whole scans) and the
-            offsets then re-queried with the whole scan.
     """
 
     name: ClassVar[str] = "ensemble"
@@ -154,15 +151,13 @@ class EnsembleAttack(Attack):
         "sector_iterations": Range(0, 100_000), "queries": Range(0, 10_000_000),
         "spoof_queries": Range(1, 10_000_000), "valley_queries": Range(1, 10_000_000),
         "directions": Range(1, 100_000), "screen": Range(0, 100_000),
-        "patience": Range(0, 10_000_000), "proxy": Range(0.0, 1.0, lo_open=True),
-        "verify": Range(1, 10_000)}
+        "patience": Range(0, 10_000_000)}
 
     def __init__(self, *, strict: bool = False, members: str | None = None, pgd_steps: int = 5,
                  pgd_step_size: float = 0.1, sector_iterations: int = 4, queries: int = 20,
                  spoof_queries: int = SPOOF_QUERIES, valley_queries: int = VALLEY_QUERIES,
                  directions: int = DIRECTIONS, screen: int = SCREEN,
-                 patience: int = SEARCH_PATIENCE, proxy: float = 1.0, verify: int = 4,
-                 **params: Any) -> None:
+                 patience: int = SEARCH_PATIENCE, **params: Any) -> None:
         for nm, v, lo in (("pgd_steps", pgd_steps, 0), ("sector_iterations", sector_iterations, 0),
                           ("queries", queries, 0), ("spoof_queries", spoof_queries, 1),
                           ("valley_queries", valley_queries, 1), ("directions", directions, 1),
@@ -176,8 +171,7 @@ class EnsembleAttack(Attack):
             PGDAttack(steps=self.pgd_steps, step_size=self.pgd_step_size)  # checks the settings
         self.search_attack = QuerySearchAttack(strict=strict, queries=max(self.queries, 1),
                                                patience=int(patience))
-        spoofing = dict(directions=int(directions), screen=int(screen), proxy=proxy,
-                        verify=verify)
+        spoofing = dict(directions=int(directions), screen=int(screen))
         self.members: dict[str, Attack] = {
             "uniform": UniformTranslationAttack(strict=strict),
             "normal": NormalTranslationAttack(strict=strict),
@@ -191,9 +185,7 @@ class EnsembleAttack(Attack):
                          sector_iterations=int(sector_iterations), queries=self.queries,
                          spoof_queries=int(spoof_queries), valley_queries=int(valley_queries),
                          directions=int(directions), screen=int(screen),
-                         patience=int(patience), members=list(self.active),
-                         **({"proxy": float(proxy), "verify": int(verify)} if proxy < 1 else {}),
-                         **params)
+                         patience=int(patience), members=list(self.active), **params)
 
     def _pgd(self, surrogate: Target) -> PGDAttack:
         """The PGD member for this surrogate: its own iteration cap, implicit gradient."""

@@ -30,21 +30,9 @@ evaluated target's answers:
    of half the fan's spacing, ``|D|`` by a log-normal factor), kept when the error grows.
 
 One query per scan and step, every scan of the batch in one call; the scan with the largest error
-on the target is returned.
-
-With ``proxy`` < 1 the schedule is *screened*: every query of steps 1-3 registers only a fixed
-random share ``proxy`` of the scan's points (their displacements computed for those points alone),
-which costs the target about that share of a whole query, and the ``verify`` offsets with the
-largest screened errors are then queried with the whole scan; the best of those is returned. It
-rests on one premise, measured rather than assumed (docs/methods.md, "Screened queries"): an
-even share of the points ranks the offsets much as the whole scan does, since each point pulls
-the ICP on its own and the share keeps the mix of surfaces. It is a multi-fidelity search
-(Kandasamy et al., "Multi-fidelity Bayesian optimisation with continuous approximations",
-ICML 2017: a cheap approximation of the objective decides where the full evaluations go).
-
-The displacement is recomputed from the *clean* scan for every D, so each point moves at most
-lambda. Frames: scans in the sensor frame, displacements computed in the map frame at the true
-pose and rotated back with ``R_gt^T``.
+on the target is returned. The displacement is recomputed from the *clean* scan for every D, so
+each point moves at most lambda. Frames: scans in the sensor frame, displacements computed in the
+map frame at the true pose and rotated back with ``R_gt^T``.
 """
 
 from __future__ import annotations
@@ -76,8 +64,6 @@ MISFIT_CAP = 2.0
 #: Bounds of ``|D|`` / lambda in the random steps, and the log-normal scale of a step.
 OFFSET_BOUNDS = (1.0, 8.0)
 OFFSET_STEP = 0.2
-#: Seed of the fixed permutation that picks the points of screened queries.
-SCREEN_SEED = 20261127
 
 
 def spoofed_displacement(points_map: np.ndarray, rotation: np.ndarray, offset: np.ndarray,
@@ -98,14 +84,6 @@ def spoofed_displacement(points_map: np.ndarray, rotation: np.ndarray, offset: n
     delta = np.zeros_like(points_map)
     delta[found] = map_index.points[idx[found]] - target[found]
     return clip_displacements(delta, budget_m) @ rotation  # R^T delta per row: sensor frame
-
-
-def screened_points(n: int, share: float) -> np.ndarray:
-    """The points (sorted indices) a screened query registers: ``ceil(share n)`` of the ``n``
-    points (at least one), drawn by a fixed random permutation, the same for every scan of size
-    ``n`` and independent of the attack's random streams."""
-    count = max(1, math.ceil(share * n))
-    return np.sort(np.random.default_rng(SCREEN_SEED).permutation(n)[:count])
 
 
 def misfit(points_map: np.ndarray, offset: np.ndarray, map_index: Any, budget_m: float) -> float:
@@ -139,9 +117,6 @@ class SpoofAttack(Attack):
         directions: headings of the first sweep, >= 1.
         screen: headings ranked by :func:`misfit` before the sweep, of which the ``directions``
             best are queried (0 or <= ``directions``: no screen, the sweep is an even fan).
-        proxy: share of the scan's points each query of the schedule registers (1: the whole
-            scan; below 1 the schedule is screened, module docstring).
-        verify: screened offsets re-queried with the whole scan (with ``proxy`` < 1).
     """
 
     name: ClassVar[str] = "spoof"
@@ -153,28 +128,21 @@ class SpoofAttack(Attack):
     needs_oracle: ClassVar[bool] = True
     param_ranges: ClassVar[dict[str, Range]] = {
         "queries": Range(1, 10_000_000), "directions": Range(1, 100_000),
-        "screen": Range(0, 100_000), "proxy": Range(0.0, 1.0, lo_open=True),
-        "verify": Range(1, 10_000)}
+        "screen": Range(0, 100_000)}
     #: ``|D|`` / lambda of the first sweep and of the ladder (subclasses may change the schedule).
     first_offset: ClassVar[float] = FIRST_OFFSET
     ladder: ClassVar[tuple[float, ...]] = LADDER
 
     def __init__(self, *, strict: bool = False, queries: int = 24, directions: int = 8,
-                 screen: int = 0, proxy: float = 1.0, verify: int = 4, **params: Any) -> None:
+                 screen: int = 0, **params: Any) -> None:
         for nm, v, lo in (("queries", queries, 1), ("directions", directions, 1),
-                          ("screen", screen, 0), ("verify", verify, 1)):
+                          ("screen", screen, 0)):
             if isinstance(v, bool) or int(v) != v or int(v) < lo:
                 raise InputError(f"{self.name} {nm} must be an integer >= {lo}, got {v!r}")
-        if isinstance(proxy, bool) or not (0.0 < float(proxy) <= 1.0):
-            raise InputError(f"{self.name} proxy must be a share of the points in (0, 1], got "
-                             f"{proxy!r}")
         self.queries, self.directions = int(queries), int(directions)
         self.screen = int(screen) if int(screen) > self.directions else 0
-        self.proxy, self.verify = float(proxy), int(verify)
         if self.screen:
             params["screen"] = self.screen
-        if self.proxy < 1.0:  # recorded only when used: the settings of earlier runs stay valid
-            params.update(proxy=self.proxy, verify=self.verify)
         super().__init__(strict=strict, queries=self.queries, directions=self.directions, **params)
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None,
@@ -214,29 +182,19 @@ class SpoofAttack(Attack):
             keep = np.sort(np.argsort(bad, axis=1, kind="stable")[:, :K], axis=1)
             heads = np.take_along_axis(heads, keep, axis=1)
 
-        # screened queries register the points ``keep`` of each scan (module docstring)
-        screened = self.proxy < 1.0 and not oracle.whole_scans_only
-        keep = screened_points(clean.shape[1], self.proxy) if screened else slice(None)
-        best = clean[:, keep].copy()
+        best = clean.copy()
         best_err = np.full(B, np.nan)
         best_hm = np.full((B, 2), np.nan)  # (heading rad, |D| / lambda) of the best
         sweep_err = np.full((B, K), -np.inf)
-        tried: list[tuple[np.ndarray, np.ndarray]] = []  # (hm (B, 2), errors (B,)) per query
-
-        def scans(hm: np.ndarray, points: Any) -> np.ndarray:
-            """The adversarial scans (B, n, 3) of (heading, |D| / lambda) per scan (B, 2)."""
-            adv = clean[:, points].copy()
-            for b in range(B):
-                h, m = hm[b]
-                D = m * budget_m * np.array([math.cos(h), math.sin(h), 0.0])
-                adv[b] += self.displacement(p_map[b][points], R[b], D, maps[b], budget_m, oracle)
-            return adv
 
         def query(hm: np.ndarray) -> np.ndarray:
             """Evaluate (heading, |D| / lambda) per scan (B, 2); keep the best; errors (B,)."""
-            adv = scans(hm, keep)
+            adv = clean.copy()
+            for b in range(B):
+                h, m = hm[b]
+                D = m * budget_m * np.array([math.cos(h), math.sin(h), 0.0])
+                adv[b] += self.displacement(p_map[b], R[b], D, maps[b], budget_m, oracle)
             err = oracle.errors(adv)
-            tried.append((hm.copy(), err))
             better = score(err) > score(best_err)
             best[better], best_err[better], best_hm[better] = adv[better], err[better], hm[better]
             return err
@@ -267,27 +225,4 @@ class SpoofAttack(Attack):
                 hm[b, 1] = float(np.clip(hm[b, 1] * math.exp(OFFSET_STEP * z[1]), lo, hi))
             query(hm)
             used += 1
-        if not screened:
-            return best, best_err, best_hm[:, 1] * budget_m
-        return self._verified(tried, scans, oracle, budget_m)
-
-    def _verified(self, tried: list[tuple[np.ndarray, np.ndarray]], scans: Any,
-                  oracle: QueryOracle, budget_m: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The whole scans of the ``verify`` offsets with the largest screened errors per scan,
-        queried; the best of them per scan (scans (B, N, 3), errors (B,), ``|D|`` (B,))."""
-        hms = np.stack([hm for hm, _ in tried], 1)  # (B, Q, 2)
-        errs = np.stack([score(e) for _, e in tried], 1)  # (B, Q)
-        order = np.argsort(-errs, axis=1, kind="stable")
-        B = hms.shape[0]
-        best, best_err = None, np.full(B, np.nan)
-        best_hm = np.full((B, 2), np.nan)
-        for j in range(min(self.verify, hms.shape[1])):
-            hm = np.take_along_axis(hms, order[:, j:j + 1, None], 1)[:, 0]
-            adv = scans(hm, slice(None))
-            err = oracle.errors(adv)
-            if best is None:
-                best = adv.copy()
-            better = score(err) > score(best_err)
-            best[better], best_err[better], best_hm[better] = adv[better], err[better], hm[better]
         return best, best_err, best_hm[:, 1] * budget_m

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -94,9 +94,6 @@ class MonitoredOracle(QueryOracle):
         best_error: (B,) the largest finite error of an unflagged candidate seen so far per
             sample (-inf: none yet); ``best_scan`` holds that candidate (None: none yet).
     """
-
-    #: the monitors were calibrated on whole scans, and the best undetected scan is kept
-    whole_scans_only: ClassVar[bool] = True
 
     def __init__(self, target: Target, batch: Batch, maps: Sequence[Any],
                  monitors: Sequence[Monitor]) -> None:

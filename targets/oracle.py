@@ -15,7 +15,7 @@ Frames: scans (B, N, 3) in the sensor frame; poses ``T_map_scan`` (4, 4); errors
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,18 +29,12 @@ from icpbench.targets.base import Target
 class QueryOracle:
     """The evaluated target, for one batch, as a counted query interface.
 
-    A query may register a scan of any size N (e.g. a share of a scan's points, the screened
-    queries of :mod:`icpbench.attacks.spoof`) unless :attr:`whole_scans_only`.
-
     Args:
         target: the target the rows are evaluated on.
         batch: the batch under attack (true poses and initial guesses).
         maps: B maps in the form ``target.register`` takes (prepared handles for a black box, the
             batch's ``MapIndex`` for a differentiable target).
     """
-
-    #: Queries must register whole scans (e.g. an oracle whose monitors were calibrated on them).
-    whole_scans_only: ClassVar[bool] = False
 
     def __init__(self, target: Target, batch: Batch, maps: Sequence[Any]) -> None:
         if len(maps) != len(batch):
