@@ -147,3 +147,33 @@ def test_an_interrupted_pool_stops_its_scans_at_once():
         for _ in ProcessExecutor(3).map(_SlowWorker(), items):
             raise KeyboardInterrupt  # Ctrl-C while the slow samples are in flight
     assert time.perf_counter() - t0 < 30  # their processes were stopped, not waited for
+
+
+class _Picky(Exception):
+    """An exception that pickles but cannot be rebuilt from its arguments."""
+
+    def __init__(self, a, b):
+        super().__init__(f"{a} and {b}")
+
+
+def test_an_error_the_queue_cannot_carry_still_reaches_the_driver_as_text():
+    import icpbench.harness.executors as ex
+
+    class Boom:
+        def run(self, item):
+            raise _Picky(1, 2)
+
+    class Channel:
+        sent: list = []
+
+        def put(self, msg):
+            self.sent.append(msg)
+
+    ex._PROCESS_WORKER, ex._PROCESS_ERROR, ex._PROCESS_CHANNEL = Boom(), None, Channel()
+    try:
+        ex._process_run((0, 0), None)
+    finally:
+        ex._PROCESS_WORKER = ex._PROCESS_CHANNEL = None
+    key, unit, err = Channel.sent[-1]
+    assert key == (0, 0) and unit is None
+    assert isinstance(err, ex.IcpbenchError) and "_Picky: 1 and 2" in str(err)

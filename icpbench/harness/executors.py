@@ -190,9 +190,9 @@ class ProcessExecutor(Executor):
                   ) -> Iterator[tuple[WorkItem, int, list[Row]]]:
         """Yield every item's units in grid order, each as soon as all of its samples sent it.
 
-        A sample whose worker raised sends its error after the units it finished (one queue per
-        worker keeps that order), so the error is raised when its unit's turn comes, after the
-        rows the local executor would have written first."""
+        A sample whose worker raised sends its error after the units it finished (the queue
+        delivers one process's messages in the order it sent them), so the error is raised when
+        its unit's turn comes, after the rows the local executor would have written first."""
         got: dict[tuple[int, int], dict[int, list[Row]]] = {
             (i, s): {} for i, group in enumerate(pieces) for s in range(len(group))}
         failed: dict[tuple[int, int], BaseException] = {}
@@ -325,8 +325,8 @@ def _process_run(key: tuple[int, int], item: WorkItem) -> None:
             _PROCESS_CHANNEL.put((key, k, rows))
     except Exception as exc:
         try:
-            pickle.dumps(exc)
-        except Exception:  # the queue could not carry it: its text still reaches the driver
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # the queue could not carry it (or the driver rebuild it): its text can
             exc = IcpbenchError(f"{type(exc).__name__}: {exc}")
         _PROCESS_CHANNEL.put((key, None, exc))
 
