@@ -298,7 +298,10 @@ def run(
     false_alarm_rate: Annotated[float | None, typer.Option(
         help="False-alarm rate each monitor is calibrated for (0..0.5). [default: 0.01]")] = None,
     calibration_samples: Annotated[int | None, typer.Option(
-        help="Clean train-split scans the monitors are calibrated on. [default: 100]")] = None,
+        help="Clean scans the monitors are calibrated on. [default: 100]")] = None,
+    calibration_split: Annotated[str | None, typer.Option(
+        help="Calibration scans from 'train' (the train split) or 'heldout' (the evaluated "
+             "split's scans after the first --samples, never evaluated). [default: train]")] = None,
     monitor_aware: Annotated[bool | None, typer.Option(
         "--monitor-aware/--no-monitor-aware",
         help="Query attacks maximise the undetected error (they know the monitors). "
@@ -328,7 +331,8 @@ def run(
             "strict": strict, "batch_size": batch_size, "threads": threads, "executor": executor,
             "strict_files": strict_files, "corruptions": corruptions, "severities": severities,
             "monitors": monitors, "false_alarm_rate": false_alarm_rate,
-            "calibration_samples": calibration_samples, "monitor_aware": monitor_aware}
+            "calibration_samples": calibration_samples, "calibration_split": calibration_split,
+            "monitor_aware": monitor_aware}
         if dataset is not None and config is not None and dataset != base.dataset:
             base.dataset_params = {}  # another dataset: the file's dataset settings do not apply
             if budgets is None:

@@ -143,3 +143,30 @@ def test_a_board_with_monitors_shows_detection_and_the_undetected_worst_case(tmp
         np.where(alarm, 0.0, e.trans_err_xy.astype(float)).mean())
     md = (tmp_path / "b" / "leaderboard.md").read_text()
     assert "| detected | undetected [m] |" in md and "the attacks ignore them" in md
+
+
+def test_a_heldout_calibration_uses_the_evaluated_splits_later_scans_and_never_overlaps(
+        tmp_path, monkeypatch):
+    from icpbench.harness import run_monitors
+
+    seen = []
+    real = run_monitors._calibration_scans
+
+    def spy(cfg):
+        out = real(cfg)
+        seen.append(out[:2])
+        return out
+
+    monkeypatch.setattr(run_monitors, "_calibration_scans", spy)
+    cfg = {**SYN, "calibration_split": "heldout", "calibration_samples": 8}
+    run(RunConfig(**cfg, attacks=["none"]), tmp_path / "r", progress=False)
+    (source, first), = seen
+    assert source.split == "test" and first == SYN["samples"]  # the scans after the evaluated 4
+    manifest = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert manifest["config"]["calibration_split"] == "heldout" and manifest["monitors"]
+    with pytest.raises(InputError, match="samples: stored 4, now 6"):  # would overlap
+        run(RunConfig(**{**cfg, "samples": 6}, attacks=["none"]), tmp_path / "r", progress=False)
+    with pytest.raises(InputError, match="or lower --samples"):  # 2 held-out scans left
+        run(RunConfig(**{**cfg, "samples": 10}, attacks=["none"]), tmp_path / "o", progress=False)
+    with pytest.raises(InputError, match="'heldout' needs samples"):
+        RunConfig(**{**cfg, "samples": None}, attacks=["none"]).validate()

@@ -260,9 +260,20 @@ class RunOptions(Options):
         0.01, description="False-alarm rate each monitor is calibrated for, on clean scans of the "
                           "train split.")
     calibration_samples: Annotated[int, Field(ge=2, le=1_000_000)] = Field(
-        100, description="Clean train-split scans the monitors are calibrated on (at least "
+        100, description="Clean scans the monitors are calibrated on (at least "
                          "1 / false_alarm_rate).")
+    calibration_split: Literal["train", "heldout"] = Field(
+        "train", description="Where the calibration scans come from: 'train' (the train split) or "
+                             "'heldout' (the evaluated split's scans after the first --samples, "
+                             "never evaluated).")
     monitor_aware: bool = Field(False, description="Query attacks maximise the undetected error.")
+
+    @model_validator(mode="after")
+    def _heldout_needs_samples(self) -> RunOptions:
+        if self.calibration_split == "heldout" and self.samples is None:
+            raise _Across("calibration_split", "'heldout' needs samples: the calibration scans are "
+                                               "those after the first --samples")
+        return self
 
 
 class RunCommandOptions(Options):

@@ -73,7 +73,8 @@ def calibrate_run(cfg: RunConfig, targets: Mapping[str, Target],
                   prepare: Callable[[Target, Batch], list],
                   progress: Callable[[str], None] | None = None
                   ) -> dict[str, dict[str, MonitorCalibration]]:
-    """``{target: {monitor: calibration}}`` from clean registrations of the training split.
+    """``{target: {monitor: calibration}}`` from clean registrations of the calibration scans
+    (``cfg.calibration_split``: the train split, or the evaluated split's held-out scans).
 
     Args:
         cfg: the run (monitors, their settings, ``false_alarm_rate``, ``calibration_samples``,
@@ -83,31 +84,32 @@ def calibrate_run(cfg: RunConfig, targets: Mapping[str, Target],
         progress: called with a line per target (None: quiet).
 
     Raises:
-        InputError: the training split holds fewer usable scans than the rate needs
+        InputError: the calibration scans are fewer usable ones than the rate needs
             (``ceil(1 / rate)``), or a calibration fails (see :func:`calibrate`).
     """
     from icpbench.harness.runner import load_dataset
 
     need = math.ceil(1.0 / cfg.false_alarm_rate - 1e-9)
-    train = load_dataset(_train_split(cfg))
+    source, first, where = _calibration_scans(cfg)
+    data = load_dataset(source)
     samples = []
-    for i in range(min(cfg.calibration_samples, len(train))):
+    for i in range(first, min(first + cfg.calibration_samples, len(data))):
         try:
-            samples.append(train[i].validate())
+            samples.append(data[i].validate())
         except InputError:
             continue  # a bad file: calibrate on the others
     if len(samples) < need:
         raise InputError(
             f"monitor calibration at a false-alarm rate of {cfg.false_alarm_rate:g} needs at least "
-            f"{need} clean scans of the {cfg.dataset!r} train split, got {len(samples)} (of "
+            f"{need} clean scans of {where}, got {len(samples)} (of "
             f"calibration_samples={cfg.calibration_samples}); raise --calibration-samples or "
-            "--false-alarm-rate")
+            "--false-alarm-rate" + (", or lower --samples" if first else ""))
     monitors = build_monitors(cfg)
     out: dict[str, dict[str, MonitorCalibration]] = {}
     for tname, target in targets.items():
         if progress is not None:
-            progress(f"calibrating {', '.join(cfg.monitors)} on {len(samples)} clean "
-                     f"{cfg.dataset} train scans registered by {tname}")
+            progress(f"calibrating {', '.join(cfg.monitors)} on {len(samples)} clean scans of "
+                     f"{where} registered by {tname}")
         scores: dict[str, list[float]] = {m.name: [] for m in monitors}
         for lo in range(0, len(samples), cfg.batch_size):
             batch = Batch.from_samples(samples[lo:lo + cfg.batch_size])
@@ -118,10 +120,17 @@ def calibrate_run(cfg: RunConfig, targets: Mapping[str, Target],
     return out
 
 
-def _train_split(cfg: RunConfig) -> RunConfig:
+def _calibration_scans(cfg: RunConfig) -> tuple[RunConfig, int, str]:
+    """Where the calibration scans come from: the configuration of their dataset, the index of
+    the first, and its name in messages. ``train``: the train split from its start; ``heldout``:
+    the evaluated split after the first ``samples`` (the scans the run evaluates are never among
+    them)."""
     from dataclasses import replace
 
-    return replace(cfg, split="train")
+    if cfg.calibration_split == "heldout":
+        return cfg, int(cfg.samples or 0), (f"the {cfg.dataset!r} {cfg.split} split after its "
+                                            f"first {cfg.samples} (held out)")
+    return replace(cfg, split="train"), 0, f"the {cfg.dataset!r} train split"
 
 
 def thresholds_of(cal: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, float]]:

@@ -109,7 +109,10 @@ class RunConfig:
         monitors: integrity monitors (``["all"]`` = every one that loads; default none) whose
             score and alarm every row records (:mod:`icpbench.harness.run_monitors`), each
             calibrated per target for ``false_alarm_rate`` (0..0.5) on the clean registrations of
-            the first ``calibration_samples`` scans of the dataset's ``train`` split.
+            ``calibration_samples`` scans of the ``calibration_split``.
+        calibration_split: ``"train"`` (the first scans of the dataset's train split) or
+            ``"heldout"`` (the scans of the evaluated split after its first ``samples``: the same
+            data, never evaluated; needs ``samples``).
         monitor_params: per-monitor settings, ``{name: {key: value}}``.
         monitor_aware: the query attacks maximise the *undetected* error (candidates a monitor
             flags count as failures), instead of ignoring the monitors.
@@ -142,6 +145,7 @@ class RunConfig:
     monitor_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     false_alarm_rate: float = 0.01
     calibration_samples: int = 100
+    calibration_split: str = "train"
     monitor_aware: bool = False
 
     def validate(self) -> RunConfig:
@@ -250,7 +254,8 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     A larger ``samples`` (or None, the whole split) is not a difference: a run covers the first
     K samples of the split and stores its rows by sample id, so resuming with more samples only
     adds the rows of the new ones (the old rows are what a fresh run would compute again). A
-    smaller one is, since the store would hold rows outside the run.
+    smaller one is, since the store would hold rows outside the run; so is any other with a
+    held-out calibration, whose scans are those after the first ``samples``.
 
     Likewise, more ``attacks`` (the stored ones kept, with their settings unchanged) are not a
     difference: rows are stored by attack, so resuming only adds the new attacks' rows.
@@ -264,8 +269,9 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
         if k in EXECUTION_FIELDS:
             continue
         a, b = old.get(k, defaults.get(k)), new.get(k, defaults.get(k))
-        if k == "samples" and _grows(a, b):
-            continue
+        if k == "samples" and _grows(a, b) and not (
+                a != b and new.get("calibration_split") == "heldout"):
+            continue  # (held-out calibration scans follow the evaluated ones: more would overlap)
         if k == "attacks" and added and set(a) <= set(b):
             continue
         if k == "attack_params" and added and isinstance(a, Mapping) and isinstance(b, Mapping) \
