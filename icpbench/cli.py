@@ -416,7 +416,7 @@ def table(
                 render(corruption_frame(corrupted, target), "csv")
             _write_or_echo(text, out)
             return
-        opts.RunCommandOptions(reference=reference).check_reference(set(df["attack"]))
+        RC.parse({"reference": reference}).check_reference(set(df["attack"]))
         if transfer is not None:
             text = render(transfer_frame(df, transfer), format)
             if format != "csv" and "normal" in set(df["attack"]):

@@ -20,11 +20,11 @@ from scipy import stats
 from icpbench.analysis.plotting import pyplot, save
 from icpbench.core.errors import InputError
 from icpbench.core.filenames import safe_component
-from icpbench.harness.run_monitors import ALARM
+from icpbench.harness.monitor_report import ANY_ALARM, undetected
 
 LOCATION = "meta.frame"
 #: The column of a run with monitors that says whether any monitor fired on a row's registration.
-UNDETECTED_ALARM = "extra." + ALARM + "any"
+UNDETECTED_ALARM = ANY_ALARM
 ERROR_CAP_M = 3.0  # colour scale cap of figure 5
 
 
@@ -45,10 +45,8 @@ def location_errors(df: pd.DataFrame, attack: str, budget: float) -> pd.DataFram
         raise InputError(f"no rows for attack {attack!r} at budget {budget:g}; have {have}")
     d["lon_lat_max"] = np.maximum(d["rho_x"].abs(), d["rho_y"].abs())
     if UNDETECTED_ALARM in d.columns:  # a run with monitors: what reaches the planner unannounced
-        err = d["trans_err_xy"].astype(float).to_numpy()
-        alarm = d[UNDETECTED_ALARM].astype(float).to_numpy() > 0
+        alarm, d["undetected_err"] = undetected(d)
         d["detected"] = alarm.astype(float)
-        d["undetected_err"] = np.where(alarm | ~np.isfinite(err), 0.0, err)
     cols = {LOCATION: "location", "meta.x": "x", "meta.y": "y", "meta.stretch": "stretch",
             "meta.pass": "pass"}
     out = d.rename(columns=cols)

@@ -19,26 +19,34 @@ import pandas as pd
 from icpbench.harness.report import Format, render
 from icpbench.harness.run_monitors import ALARM
 
-__all__ = ["monitor_names", "monitor_section", "undetected_frame"]
+__all__ = ["ANY_ALARM", "monitor_names", "monitor_section", "undetected", "undetected_frame"]
 
-_ANY = "extra." + ALARM + "any"
+#: The column that says whether any monitor fired on a row's registration.
+ANY_ALARM = "extra." + ALARM + "any"
+
+
+def undetected(rows: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of a run with monitors: whether a monitor fired (bool) and the undetected error
+    [m] (the row's ``trans_err_xy`` where none fired, 0 where one did or the pose is not finite)."""
+    alarm = rows[ANY_ALARM].astype(float).to_numpy() > 0
+    err = rows["trans_err_xy"].astype(float).to_numpy()
+    return alarm, np.where(alarm | ~np.isfinite(err), 0.0, err)
 
 
 def monitor_names(df: pd.DataFrame) -> list[str]:
     """The monitors whose alarms the rows of ``df`` record (none: an empty list)."""
     pre = "extra." + ALARM
-    return [c[len(pre):] for c in df.columns if c.startswith(pre) and c != _ANY]
+    return [c[len(pre):] for c in df.columns if c.startswith(pre) and c != ANY_ALARM]
 
 
 def undetected_frame(df: pd.DataFrame, target: str) -> pd.DataFrame:
     """Per attack and budget on ``target``: rows, detection rate [%], mean error [m] (all rows,
     no monitor), undetected error mean / median / p95 [m] (module docstring); rows of failed
     attacks (``status == "error"``) are left out."""
-    sub = df[(df["target"] == target) & (df["status"] != "error") & df[_ANY].notna()]
-    alarm = sub[_ANY].astype(float).to_numpy() > 0
+    sub = df[(df["target"] == target) & (df["status"] != "error") & df[ANY_ALARM].notna()]
+    alarm, und = undetected(sub)
     err = sub["trans_err_xy"].astype(float).to_numpy()
-    undetected = np.where(alarm | ~np.isfinite(err), 0.0, err)
-    frame = sub.assign(_alarm=alarm, _und=undetected, _err=np.where(np.isfinite(err), err, np.nan))
+    frame = sub.assign(_alarm=alarm, _und=und, _err=np.where(np.isfinite(err), err, np.nan))
     out = []
     for (attack, budget), g in frame.groupby(["attack", "budget"], sort=False):
         und = g["_und"].to_numpy()
@@ -56,7 +64,7 @@ def monitor_section(df: pd.DataFrame, fmt: Format, target: str) -> str:
     """The monitors' table of one target, with the clean false-alarm rate of each monitor;
     an empty string when the rows record no monitors."""
     names = monitor_names(df)
-    if not names or _ANY not in df:
+    if not names or ANY_ALARM not in df:
         return ""
     t = undetected_frame(df, target)
     if t.empty:

@@ -257,8 +257,8 @@ class RunOptions(Options):
         [], description="Integrity monitors whose alarms every row records ('all' or names).")
     monitor_params: PluginSettings = Field({}, description="Per-monitor settings.")
     false_alarm_rate: Annotated[float, Field(gt=0, le=0.5, allow_inf_nan=False)] = Field(
-        0.01, description="False-alarm rate each monitor is calibrated for, on clean scans of the "
-                          "train split.")
+        0.01, description="False-alarm rate each monitor is calibrated for, on the clean "
+                          "calibration scans.")
     calibration_samples: Annotated[int, Field(ge=2, le=1_000_000)] = Field(
         100, description="Clean scans the monitors are calibrated on (at least "
                          "1 / false_alarm_rate).")
