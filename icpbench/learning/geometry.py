@@ -259,8 +259,7 @@ def _idw(dist: np.ndarray, power: float) -> np.ndarray:
     return w / w.sum(axis=1, keepdims=True)
 
 
-def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig | None = None,
-                     fps: np.ndarray | None = None) -> Geometry:
+def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig | None = None) -> Geometry:
     """Precompute the indices and weights of one clean scan.
 
     Args:
@@ -268,9 +267,6 @@ def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig |
             scale-invariant, only the interpolation weights' epsilon (1e-12) assumes distances well
             above 1e-6.
         config: level sizes, K, interpolation; default :class:`GeometryConfig()`.
-        fps: (n2,) the level indices :func:`nested_fps_levels` gives for these points and levels,
-            computed earlier (e.g. on a machine with Open3D, for training on one without); None:
-            computed here.
 
     Returns:
         A :class:`Geometry` with batch size 1.
@@ -286,12 +282,7 @@ def compute_geometry(points: np.ndarray | torch.Tensor, config: GeometryConfig |
             f"a scan of {N} points gives levels of ({N}, {n2}, {n3}, {n4}) points with a, b, c = "
             f"{cfg.a}, {cfg.b}, {cfg.c}; K = {cfg.k} needs n3 >= K and k_interp = {cfg.k_interp} "
             f"needs n4 >= k_interp: use at least {cfg.min_points()} points or smaller a, b, c, K")
-    if fps is None:
-        fps = nested_fps_levels(x, (n2, n3, n4))
-    else:
-        fps = np.asarray(fps, dtype=np.int64)
-        if fps.shape != (n2,) or fps.min() < 0 or fps.max() >= N:
-            raise InputError(f"fps must be {n2} indices into the {N} points, got shape {fps.shape}")
+    fps = nested_fps_levels(x, (n2, n3, n4))
     lvl = [x, x[fps], x[fps[:n3]], x[fps[:n4]]]
     import small_gicp  # on first use, as in icpbench.core.mapindex
 
