@@ -5,13 +5,13 @@ import pandas as pd
 import pytest
 
 from icpbench.analysis.danger_map import (
-    UNDETECTED_ALARM,
     auc,
     location_errors,
     pass_rank_correlation,
     write_maps,
 )
 from icpbench.core.errors import InputError
+from icpbench.harness.monitor_report import ANY_ALARM
 
 
 def _results(n_loc=12):
@@ -64,7 +64,7 @@ def test_with_monitors_the_undetected_map_is_drawn_beside_the_unmonitored_one(tm
     and 0 where one did (or the pose is not finite); its map and mean join the summary."""
     df = _results()
     alarm = (df["meta.frame"] % 3 == 0).astype(float)  # every third place caught
-    df = df.assign(**{UNDETECTED_ALARM: alarm})
+    df = df.assign(**{ANY_ALARM: alarm})
     df.loc[df.index[1], "trans_err_xy"] = np.nan  # a diverged pose counts as caught
     loc = location_errors(df, "generator", 1.0)
     caught = (loc["detected"] > 0) | ~np.isfinite(loc["trans_err_xy"])

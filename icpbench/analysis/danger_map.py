@@ -23,8 +23,6 @@ from icpbench.core.filenames import safe_component
 from icpbench.harness.monitor_report import ANY_ALARM, undetected
 
 LOCATION = "meta.frame"
-#: The column of a run with monitors that says whether any monitor fired on a row's registration.
-UNDETECTED_ALARM = ANY_ALARM
 ERROR_CAP_M = 3.0  # colour scale cap of figure 5
 
 
@@ -44,7 +42,7 @@ def location_errors(df: pd.DataFrame, attack: str, budget: float) -> pd.DataFram
         have = sorted({(a, b) for a, b in zip(df["attack"], df["budget"], strict=True)})
         raise InputError(f"no rows for attack {attack!r} at budget {budget:g}; have {have}")
     d["lon_lat_max"] = np.maximum(d["rho_x"].abs(), d["rho_y"].abs())
-    if UNDETECTED_ALARM in d.columns:  # a run with monitors: what reaches the planner unannounced
+    if ANY_ALARM in d.columns:  # a run with monitors: what reaches the planner unannounced
         alarm, d["undetected_err"] = undetected(d)
         d["detected"] = alarm.astype(float)
     cols = {LOCATION: "location", "meta.x": "x", "meta.y": "y", "meta.stretch": "stretch",
