@@ -26,6 +26,11 @@ order they run; :data:`DEFAULT_MEMBERS` are the ones that run unless ``members``
                        way to the wrong pose (:mod:`icpbench.attacks.valley`), from the clean scan
 ``search``             score-based random search (:mod:`icpbench.attacks.search`) started from the
                        best scan of every member before it
+``drift``              the scan translated rigidly, heading and length (<= lambda) searched
+                       (:mod:`icpbench.attacks.drift`): only a motion prior sees it. Not a default
+                       member; added to the defaults when the oracle hides detected errors
+                       (``--monitor-aware``, :data:`MONITOR_AWARE_MEMBERS`), where the other
+                       members' candidates overshoot an odometry gate and it finds the gate's edge
 =====================  =========================================================================
 
 Every member's output is registered by the target (a query) and the scan with the largest
@@ -56,6 +61,7 @@ import numpy as np
 import torch
 
 from icpbench.attacks.base import Attack, SampleGenerators
+from icpbench.attacks.drift import DriftAttack
 from icpbench.attacks.normal import NormalTranslationAttack
 from icpbench.attacks.pgd import PGDAttack
 from icpbench.attacks.search import QuerySearchAttack
@@ -75,17 +81,23 @@ from icpbench.targets.oracle import QueryOracle
 SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 16, 8, 0
 #: The search member stops a scan after this many queries in a row without a larger error.
 SEARCH_PATIENCE = 8
+#: Query budget of the ``drift`` member.
+DRIFT_QUERIES = 24
 
 #: Every member, in the order they run; ``extra.winner`` indexes this tuple. The one place that
 #: names the members: the leaderboard, budget curves and tables read it from here.
 MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "spoof",
-                            "valley", "search")
+                            "valley", "search", "drift")
 #: The members that run by default (``members`` setting): every member that won a scan of the
 #: 48-scan board, and ``uniform``, the reference of every "x uniform" figure.
 DEFAULT_MEMBERS: tuple[str, ...] = ("uniform", "sector-adaptive", "pgd", "spoof", "valley",
                                     "search")
+#: Members added to the defaults when the oracle hides the errors integrity monitors detect
+#: (:attr:`~icpbench.targets.oracle.QueryOracle.hides_detected`; ``--monitor-aware``); a run that
+#: names its members gets exactly those.
+MONITOR_AWARE_MEMBERS: tuple[str, ...] = ("drift",)
 #: Members that use nothing but the target's output pose.
-QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "spoof", "valley", "search"})
+QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "spoof", "valley", "search", "drift"})
 
 #: Relative gain of the search over the gradient member that flags a weak gradient.
 WEAK_GRADIENT_GAIN = 0.1
@@ -165,6 +177,7 @@ class EnsembleAttack(Attack):
             if isinstance(v, bool) or int(v) != v or int(v) < lo:
                 raise InputError(f"{self.name} {nm} must be an integer >= {lo}, got {v!r}")
         self.active = parse_members(members)
+        self.named = members is not None  # the run chose its members: none is added
         self.pgd_steps, self.queries = int(pgd_steps), int(queries)
         self.pgd_step_size = float(pgd_step_size)
         if self.pgd_steps:
@@ -180,12 +193,21 @@ class EnsembleAttack(Attack):
                                                     iterations=int(sector_iterations)),
             "spoof": SpoofAttack(strict=strict, queries=int(spoof_queries), **spoofing),
             "valley": ValleyAttack(strict=strict, queries=int(valley_queries), **spoofing),
+            "drift": DriftAttack(strict=strict, queries=DRIFT_QUERIES, directions=int(directions)),
         }
         super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
                          sector_iterations=int(sector_iterations), queries=self.queries,
                          spoof_queries=int(spoof_queries), valley_queries=int(valley_queries),
                          directions=int(directions), screen=int(screen),
                          patience=int(patience), members=list(self.active), **params)
+
+    def active_for(self, oracle: QueryOracle | None) -> tuple[str, ...]:
+        """The members that run against ``oracle``: the chosen ones, plus
+        :data:`MONITOR_AWARE_MEMBERS` when the oracle hides detected errors and the run left the
+        members to their defaults; in the order of :data:`MEMBERS`."""
+        if self.named or not getattr(oracle, "hides_detected", False):
+            return self.active
+        return tuple(m for m in MEMBERS if m in self.active or m in MONITOR_AWARE_MEMBERS)
 
     def _pgd(self, surrogate: Target) -> PGDAttack:
         """The PGD member for this surrogate: its own iteration cap, implicit gradient."""
@@ -203,8 +225,9 @@ class EnsembleAttack(Attack):
         best_err = np.full(B, np.nan)
         winner = np.full(B, np.nan)
         extra: dict[str, np.ndarray] = {}
+        active = self.active_for(oracle)
         for i, name in enumerate(MEMBERS):
-            if name not in self.active:
+            if name not in active:
                 continue
             t0 = time.perf_counter()
             if name == "search":
@@ -233,6 +256,11 @@ class EnsembleAttack(Attack):
                 gens = SampleGenerators.for_batch(batch, seed, name, budget_m)
                 member = self.members[name]
                 adv_np, err, _ = member.spoof(batch, budget_m, oracle, gens)  # type: ignore[attr-defined]
+                adv = torch.as_tensor(adv_np)
+            elif name == "drift":
+                gens = SampleGenerators.for_batch(batch, seed, name, budget_m)
+                adv_np, err, _, _ = self.members[name].drift(  # type: ignore[attr-defined]
+                    batch, budget_m, oracle, gens)
                 adv = torch.as_tensor(adv_np)
             else:
                 member = self.members[name]

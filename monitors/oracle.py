@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -94,6 +94,8 @@ class MonitoredOracle(QueryOracle):
         best_error: (B,) the largest finite error of an unflagged candidate seen so far per
             sample (-inf: none yet); ``best_scan`` holds that candidate (None: none yet).
     """
+
+    hides_detected: ClassVar[bool] = True
 
     def __init__(self, target: Target, batch: Batch, maps: Sequence[Any],
                  monitors: Sequence[Monitor]) -> None:

@@ -15,7 +15,7 @@ Frames: scans (B, N, 3) in the sensor frame; poses ``T_map_scan`` (4, 4); errors
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -35,6 +35,11 @@ class QueryOracle:
         maps: B maps in the form ``target.register`` takes (prepared handles for a black box, the
             batch's ``MapIndex`` for a differentiable target).
     """
+
+    #: The oracle reports NaN for candidates that integrity monitors flag (a
+    #: :class:`~icpbench.monitors.oracle.MonitoredOracle`): an attack then maximises the
+    #: *undetected* error, and the ``ensemble`` adds its monitor-aware members.
+    hides_detected: ClassVar[bool] = False
 
     def __init__(self, target: Target, batch: Batch, maps: Sequence[Any]) -> None:
         if len(maps) != len(batch):

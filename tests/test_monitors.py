@@ -325,3 +325,55 @@ def test_monitor_score_and_check_are_final():
 
             def score(self, inp):
                 return 0.0
+
+
+# -- the drift attack: the edge of an odometry gate ----------------------------------------------
+def _gate_optimum(prior, t_gt: np.ndarray, radius: float) -> float:
+    """The largest horizontal error |e| with |e - n| <= radius, e horizontal, n = t_pred - t_gt."""
+    n = prior.T_pred[:3, 3] - t_gt[:3, 3]
+    return float(np.linalg.norm(n[:2]) + math.sqrt(radius**2 - n[2] ** 2))
+
+
+def test_drift_finds_the_edge_of_the_odometry_gate_and_returns_no_flagged_scan():
+    """A rigid shift fits the map, so only the gate can see it; the drift attack's heading and
+    length search reaches within 10% of the analytic edge of the gate (|n_xy| + sqrt(r^2 - n_z^2)
+    along the prediction's offset n), where the plain rigid shift by lambda is flagged."""
+    batch = _room_batch()
+    target = _Gullible(batch)
+    gate = OdometryMonitor()  # sigma 0.2 m, r = 3.368 sigma = 0.674 m
+    budget = 2.0
+    oracle = MonitoredOracle(target, batch, batch.maps, [gate, ResidualMonitor()])
+    out = registry.attacks.get("drift")(queries=40).run(batch, budget, generator=0, oracle=oracle)
+    found = out.extra["drift_err"].numpy()
+    best = [_gate_optimum(oracle.priors["odometry"][b], T_GT, CHI3_99 * 0.2) for b in range(2)]
+    assert np.all(found <= np.array(best) + 1e-9)
+    assert np.all(found >= 0.9 * np.array(best)), (found, best)
+    check = MonitoredOracle(target, batch, batch.maps, [gate, ResidualMonitor()])
+    np.testing.assert_allclose(check.errors(out.scans), found, atol=1e-9)  # not flagged
+    assert check.flagged.sum() == 0
+    shift = (out.scans - batch.scans).to(torch.float64)
+    np.testing.assert_allclose(shift - shift[:, :1], 0.0, atol=1e-6)  # one rigid vector per scan
+    np.testing.assert_allclose(shift[:, 0].norm(dim=-1).numpy(), out.extra["drift_m"].numpy(),
+                               atol=1e-6)
+    assert float(out.stats["frac_over_budget"].max()) == 0.0
+    uniform = registry.attacks.get("uniform")().run(batch, budget, generator=0).scans
+    assert np.isnan(check.errors(uniform)).all()  # the plain shift by lambda is caught
+
+
+def test_drift_without_monitors_shifts_by_lambda_and_the_ensemble_adds_it_only_when_monitored():
+    batch = _room_batch()
+    target = _Gullible(batch)
+    plain = QueryOracle(target, batch, batch.maps)
+    out = registry.attacks.get("drift")(queries=10).run(batch, 0.5, generator=0, oracle=plain)
+    np.testing.assert_allclose(out.extra["drift_err"].numpy(), 0.5, atol=1e-9)
+    np.testing.assert_array_equal(out.extra["queries"].numpy(), [10, 10])
+    monitored = MonitoredOracle(target, batch, batch.maps, [OdometryMonitor()])
+    ens = registry.attacks.get("ensemble")
+    assert "drift" not in ens().active_for(plain)
+    assert ens().active_for(monitored)[-1] == "drift"
+    assert ens(members="uniform,search").active_for(monitored) == ("uniform", "search")
+    run = ens(members="uniform,drift").run(batch, 2.0, generator=0, oracle=monitored)
+    err = run.extra["err_drift"].numpy()
+    assert np.all(err > 0.5) and np.isnan(run.extra["err_uniform"].numpy()).all()
+    check = MonitoredOracle(target, batch, batch.maps, [OdometryMonitor()])
+    np.testing.assert_allclose(check.errors(run.scans), err, atol=1e-9)
