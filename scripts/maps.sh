@@ -9,3 +9,7 @@ icpbench map --attack sector --budget 1 --dataset lidar-sim --executor "$EXECUTO
   --out results/lidar-sim-map-sector
 icpbench map --attack generator --compare sector --budget 1 --dataset lidar-sim --executor "$EXECUTOR" \
   --out results/lidar-sim-map-generator
+# The error no integrity monitor catches: the drift attack told the monitors (each calibrated for 1%
+# false alarms on 100 clean train scans registered by p2plane), beside its unmonitored error.
+icpbench map --attack drift --monitors all --monitor-aware --budget 1 --dataset lidar-sim \
+  --executor "$EXECUTOR" --out results/lidar-sim-map-undetected
