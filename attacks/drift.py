@@ -43,6 +43,7 @@ import torch
 from icpbench.attacks.base import Attack, SampleGenerators
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core.errors import InputError
+from icpbench.core.registry import Range
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
@@ -67,6 +68,8 @@ class DriftAttack(Attack):
         "queries: the largest error a motion-prior gate lets through (beyond the paper)"
     )
     needs_oracle: ClassVar[bool] = True
+    param_ranges: ClassVar[dict[str, Range]] = {"queries": Range(1, 10_000_000),
+                                                "directions": Range(1, 100_000)}
 
     def __init__(self, *, strict: bool = False, queries: int = 24, directions: int = 8,
                  **params: Any) -> None:
