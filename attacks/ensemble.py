@@ -19,7 +19,9 @@ order they run; :data:`DEFAULT_MEMBERS` are the ones that run unless ``members``
 ``pgd``                projected gradient ascent through the run's surrogate, started from the best
                        scan of the members before it: with ``--surrogate self`` the target itself,
                        or its differentiable replica, at its own converged pose (implicit
-                       gradient); skipped when there is no differentiable surrogate
+                       gradient); skipped when there is no differentiable surrogate. Against
+                       a monitored oracle it climbs the error minus the monitors'
+                       differentiable scores (:mod:`icpbench.monitors.penalty`)
 ``spoof``              the scan made to agree with the map at a wrong pose, the pose searched with
                        queries (:mod:`icpbench.attacks.spoof`), from the clean scan
 ``valley``             spoof with each point's move chosen so the target's model cost falls all the
@@ -31,6 +33,11 @@ order they run; :data:`DEFAULT_MEMBERS` are the ones that run unless ``members``
                        member; added to the defaults when the oracle hides detected errors
                        (``--monitor-aware``, :data:`MONITOR_AWARE_MEMBERS`), where the other
                        members' candidates overshoot an odometry gate and it finds the gate's edge
+``refine``             projected gradient ascent (as ``pgd``, :data:`REFINE_STEPS` steps) from the best
+                       scan of every member before it: against a monitored oracle the error minus
+                       the monitors' differentiable scores, so it climbs from the best undetected
+                       scan along the edge of what the monitors accept. Not a default member;
+                       added with ``drift`` under ``--monitor-aware``
 =====================  =========================================================================
 
 Every member's output is registered by the target (a query) and the scan with the largest
@@ -83,11 +90,13 @@ SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 16, 8, 0
 SEARCH_PATIENCE = 8
 #: Query budget of the ``drift`` member.
 DRIFT_QUERIES = 24
+#: Ascent steps of the ``refine`` member (each of ``pgd_step_size`` times lambda).
+REFINE_STEPS = 10
 
 #: Every member, in the order they run; ``extra.winner`` indexes this tuple. The one place that
 #: names the members: the leaderboard, budget curves and tables read it from here.
 MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "spoof",
-                            "valley", "search", "drift")
+                            "valley", "search", "drift", "refine")
 #: The members that run by default (``members`` setting): every member that won a scan of the
 #: 48-scan board, and ``uniform``, the reference of every "x uniform" figure.
 DEFAULT_MEMBERS: tuple[str, ...] = ("uniform", "sector-adaptive", "pgd", "spoof", "valley",
@@ -95,7 +104,7 @@ DEFAULT_MEMBERS: tuple[str, ...] = ("uniform", "sector-adaptive", "pgd", "spoof"
 #: Members added to the defaults when the oracle hides the errors integrity monitors detect
 #: (:attr:`~icpbench.targets.oracle.QueryOracle.hides_detected`; ``--monitor-aware``); a run that
 #: names its members gets exactly those.
-MONITOR_AWARE_MEMBERS: tuple[str, ...] = ("drift",)
+MONITOR_AWARE_MEMBERS: tuple[str, ...] = ("drift", "refine")
 #: Members that use nothing but the target's output pose.
 QUERY_ONLY: frozenset[str] = frozenset({"sector-adaptive", "spoof", "valley", "search", "drift"})
 
@@ -139,7 +148,7 @@ class EnsembleAttack(Attack):
         members: the members to run (comma-separated names of :data:`MEMBERS`, run in that order;
             default :data:`DEFAULT_MEMBERS`).
         pgd_steps: ascent steps of the ``pgd`` member (0: skip it).
-        pgd_step_size: its step as a fraction of lambda.
+        pgd_step_size: its step as a fraction of lambda (the ``refine`` member's too).
         sector_iterations: re-linearisations of the ``sector-adaptive`` member.
         queries: query budget of the ``search`` member per scan (0: skip it).
         patience: the search stops a scan after this many queries in a row without a larger
@@ -209,10 +218,11 @@ class EnsembleAttack(Attack):
             return self.active
         return tuple(m for m in MEMBERS if m in self.active or m in MONITOR_AWARE_MEMBERS)
 
-    def _pgd(self, surrogate: Target) -> PGDAttack:
-        """The PGD member for this surrogate: its own iteration cap, implicit gradient."""
+    def _pgd(self, surrogate: Target, steps: int) -> PGDAttack:
+        """The gradient member (``pgd`` or ``refine``) for this surrogate: ``steps`` steps, the
+        surrogate's own iteration cap, implicit gradient."""
         cap = getattr(getattr(surrogate, "config", None), "max_iterations", 100)
-        return PGDAttack(strict=self.strict, steps=self.pgd_steps, step_size=self.pgd_step_size,
+        return PGDAttack(strict=self.strict, steps=steps, step_size=self.pgd_step_size,
                          icp_iterations=int(cap), backprop="implicit")
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate: Target | None,
@@ -244,12 +254,15 @@ class EnsembleAttack(Attack):
                     # the ensemble's worst case had it stopped after q search queries
                     extra.update({f"search_best_at_{q}": e for q, e in trace.items()})
                     adv = torch.as_tensor(adv_np)
-            elif name == "pgd":
-                if self.pgd_steps == 0 or surrogate is None or not surrogate.differentiable:
+            elif name in ("pgd", "refine"):
+                steps = self.pgd_steps if name == "pgd" else REFINE_STEPS
+                if steps == 0 or surrogate is None or not surrogate.differentiable:
                     err = np.full(B, np.nan)
                 else:
-                    adv = self._pgd(surrogate).refine(batch, best.to(batch.scans.dtype),
-                                                      budget_m, surrogate=surrogate)
+                    # against a monitored oracle: the monitors' scores as a penalty
+                    adv = self._pgd(surrogate, steps).refine(batch, best.to(batch.scans.dtype),
+                                                             budget_m, surrogate=surrogate,
+                                                             penalty=oracle.penalty())
                     adv = adv.to(torch.float64)
                     err = oracle.errors(adv)
             elif name in ("spoof", "valley"):  # their own best is measured already

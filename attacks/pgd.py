@@ -10,6 +10,11 @@ the one-step worst case of Laconte et al., RA-L 2024, with the surrogate's assoc
 per-point ascent direction is the normalised gradient of that point; the best iterate per scan is
 returned. Slow and strong: it shows how close the generator gets and at what cost.
 
+Against integrity monitors (the ``ensemble``'s gradient member under ``--monitor-aware``),
+:meth:`PGDAttack.refine` takes a ``penalty`` (:class:`~icpbench.monitors.penalty.MonitorPenalty`):
+the ascent climbs the error minus the monitors' differentiable scores past their thresholds, and
+the best iterate is the best one every such monitor passes.
+
 ``init="sector-iter"`` starts from the iterated analytic attack
 (:mod:`icpbench.core.iterated_sector`, settings ``sector_iter``); the ``pgd-warm`` preset
 (:mod:`icpbench.attacks.pgd_warm`) is that start plus two steps, the cheaper oracle.
@@ -17,8 +22,10 @@ returned. Slow and strong: it shows how close the generator gets and at what cos
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 
 from icpbench.attacks.base import Attack, project_to_ball, reuse_radius
@@ -30,6 +37,10 @@ from icpbench.core.registry import Range
 from icpbench.core.se3 import pose_error
 from icpbench.core.types import Batch
 from icpbench.targets.base import Target
+
+#: A penalty on B candidates: (scans (B, N, 3), poses (B, 4, 4)) -> (penalty (B,) tensor in
+#: metres of objective, feasible (B,) bool); :class:`~icpbench.monitors.penalty.MonitorPenalty`.
+Penalty = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, np.ndarray]]
 
 INITS = ("random", "clean", "sector", "sector-iter")
 
@@ -106,8 +117,21 @@ class PGDAttack(Attack):
 
     def _objective(self, icp: Target, batch: Batch, adv: torch.Tensor) -> torch.Tensor:
         """Surrogate objective (B,) of adversarial scans ``adv`` (B, N, 3) of the batch."""
+        return self._scored(icp, batch, adv, None)[0]
+
+    def _scored(self, icp: Target, batch: Batch, adv: torch.Tensor, penalty: Penalty | None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(objective to ascend (B,), score to keep the best by (B,)) of ``adv`` (B, N, 3): the
+        weighted pose error for both without a penalty; with one, the error minus the penalty
+        to ascend and the error where the candidate is feasible (-inf elsewhere) to keep."""
         reg = icp.register(adv, batch.maps, batch.T_init)
-        return weighted_pose_error(pose_error(reg.T, batch.T_gt.to(adv.dtype)), self.w)
+        err = weighted_pose_error(pose_error(reg.T, batch.T_gt.to(adv.dtype)), self.w)
+        if penalty is None:
+            return err, err.detach()
+        pen, feasible = penalty(adv, reg.T)
+        keep = torch.where(torch.as_tensor(feasible), err.detach(),
+                           torch.full_like(err.detach(), -torch.inf))
+        return err - pen, keep
 
     def _perturb(self, batch: Batch, budget_m: float, *, surrogate, generator) -> torch.Tensor:
         icp = self._surrogate(surrogate)
@@ -142,42 +166,46 @@ class PGDAttack(Attack):
         return adv
 
     def _ascend(self, icp: Target, batch: Batch, clean: torch.Tensor, adv: torch.Tensor,
-                budget_m: float, best: torch.Tensor, best_val: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+                budget_m: float, best: torch.Tensor, best_val: torch.Tensor,
+                penalty: Penalty | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``self.steps`` projected normalised-gradient steps of ``step_size * budget_m`` from
         ``adv`` (B, N, 3) inside the budget balls around ``clean``; returns the best iterate per
         scan seen (``best``/``best_val`` given included, and the final iterate) and its
-        objective (B,)."""
+        objective (B,) (with a ``penalty``: its error, -inf where no iterate was feasible)."""
         adv, best, best_val = adv.detach().clone(), best.clone(), best_val.clone()
         alpha = self.step_size * budget_m
         for _ in range(self.steps):
             x = adv.clone().requires_grad_(True)
-            val = self._objective(icp, batch, x)
+            val, keep = self._scored(icp, batch, x, penalty)
             (g,) = torch.autograd.grad(val.sum(), x)
             with torch.no_grad():
-                better = val > best_val
+                better = keep > best_val
                 best = torch.where(better[:, None, None], x, best)
-                best_val = torch.where(better, val, best_val)
+                best_val = torch.where(better, keep, best_val)
                 g = torch.nan_to_num(g)
                 gn = torch.linalg.norm(g, dim=-1, keepdim=True)
                 adv = project_to_ball(clean, x + alpha * g / torch.clamp(gn, min=1e-12), budget_m)
         with torch.no_grad():
-            val = self._objective(icp, batch, adv)
+            _, val = self._scored(icp, batch, adv, penalty)
             better = val > best_val
             best = torch.where(better[:, None, None], adv, best)
             best_val = torch.where(better, val, best_val)
         return best, best_val
 
     def refine(self, batch: Batch, start: torch.Tensor, budget_m: float, *,
-               surrogate: Target) -> torch.Tensor:
+               surrogate: Target, penalty: Penalty | None = None) -> torch.Tensor:
         """``self.steps`` steps of projected ascent from another attack's output (test-time
         refinement, e.g. of the generator's): ``start`` (B, N, 3) adversarial scans within the
         budget of ``batch.scans``; returns the best of ``start`` and the iterates (B, N, 3) in the
-        batch's dtype, never worse than ``start`` on the surrogate's objective."""
+        batch's dtype, never worse than ``start`` on the surrogate's objective. With a
+        ``penalty`` (B candidates of this batch; :mod:`icpbench.monitors.penalty`) the ascent
+        climbs the error minus the penalty and returns the feasible iterate with the largest
+        error (``start`` where none is feasible)."""
         icp = self._surrogate(surrogate)
         clean = batch.scans.to(torch.float64)
         start = project_to_ball(clean, start.detach().to(torch.float64), budget_m)
         # the first step evaluates the start itself (with its gradient): no separate evaluation
         unseen = torch.full((start.shape[0],), -torch.inf, dtype=torch.float64)
-        best, _ = self._ascend(icp, batch, clean, start, budget_m, start.clone(), unseen)
+        best, _ = self._ascend(icp, batch, clean, start, budget_m, start.clone(), unseen,
+                               penalty)
         return best.to(batch.scans.dtype)

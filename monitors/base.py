@@ -13,8 +13,12 @@ fires (:class:`~icpbench.monitors.oracle.MonitoredOracle`).
 The contract: a subclass sets ``name``, ``description``, ``param_ranges`` and implements
 :meth:`Monitor._score` (larger = more suspicious); :meth:`Monitor.score` and :meth:`Monitor.check`,
 which subclasses cannot override, handle a non-finite pose (always flagged) and a monitor that
-returns NaN. A monitor that uses a motion prior overrides :meth:`Monitor.motion_prior`, which the
-harness calls with the true pose to simulate the prior it is given.
+returns NaN. A monitor whose score can be written in torch sets ``differentiable`` and implements
+:meth:`Monitor._differentiable_score` (same value, with a gradient): the gradient member of the
+``ensemble`` then penalises it under ``--monitor-aware`` (:mod:`icpbench.monitors.penalty`); the
+others are seen by the query members only. A monitor that uses a motion prior overrides
+:meth:`Monitor.motion_prior`, which the harness calls with the true pose to simulate the prior it
+is given.
 
 Construction: ``cls(**settings)``; the settings are the named keyword parameters of ``__init__``
 (:meth:`Monitor.param_types`), among them ``threshold``, checked against ``param_ranges`` by the
@@ -30,9 +34,11 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, final
 
 import numpy as np
+import torch
 
 from icpbench.core.errors import InputError
 from icpbench.core.registry import Range, check_ranges, keyword_params
+from icpbench.monitors.differentiable import DiffInput
 from icpbench.monitors.inputs import MonitorInput, MotionPrior
 
 __all__ = ["Monitor", "MonitorInput", "MonitorResult", "MotionPrior"]
@@ -75,6 +81,9 @@ class Monitor(ABC):
     param_ranges: ClassVar[dict[str, Range]] = {}
     #: The score's unit (for tables and manifests), e.g. ``"m"`` or ``"1"`` (dimensionless).
     unit: ClassVar[str] = "1"
+    #: Whether :meth:`differentiable_score` exists (the subclass implements
+    #: :meth:`_differentiable_score`).
+    differentiable: ClassVar[bool] = False
 
     def __init__(self, *, threshold: float, **params: Any) -> None:
         values = {"threshold": threshold, **params}
@@ -88,7 +97,7 @@ class Monitor(ABC):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        for final_name in ("score", "check"):
+        for final_name in ("score", "check", "differentiable_score"):
             if final_name in cls.__dict__:
                 raise TypeError(f"{cls.__name__} overrides Monitor.{final_name}, which is final (it "
                                 "flags a non-finite pose and refuses a NaN score); implement _score")
@@ -127,6 +136,33 @@ class Monitor(ABC):
         """Score one registration and compare it with the threshold."""
         s = self.score(inp)
         return MonitorResult(self.name, s, self.threshold, bool(s > self.threshold))
+
+    def _differentiable_score(self, x: DiffInput) -> torch.Tensor:
+        """The score of a registration with a finite pose as a scalar tensor: the value of
+        :meth:`_score` for the same registration, with a gradient with respect to ``x.scan`` and
+        ``x.T_hat``. Implemented by the monitors that set ``differentiable``."""
+        raise NotImplementedError(f"monitor {self.name!r} has no differentiable score")
+
+    @final
+    def differentiable_score(self, x: DiffInput) -> torch.Tensor:
+        """The monitor's score of one registration as a scalar float64 tensor with a gradient
+        (a non-finite pose scores inf, without one).
+
+        Raises:
+            InputError: the monitor has no differentiable score, or ``x`` is not a
+                :class:`~icpbench.monitors.differentiable.DiffInput`.
+            RuntimeError: the monitor returned NaN.
+        """
+        if not self.differentiable:
+            raise InputError(f"monitor {self.name!r} has no differentiable score")
+        if not isinstance(x, DiffInput):
+            raise InputError(f"monitor {self.name!r} takes a DiffInput, got {type(x).__name__}")
+        if not bool(torch.isfinite(x.T_hat.detach()).all()):
+            return torch.tensor(math.inf, dtype=torch.float64)
+        s = self._differentiable_score(x).to(torch.float64).reshape(())
+        if bool(torch.isnan(s.detach())):
+            raise RuntimeError(f"monitor {self.name!r} returned NaN for sample {x.sample_id!r}")
+        return s
 
     def alarm(self, inp: MonitorInput) -> bool:
         """Whether the monitor fires on this registration (``score > threshold``)."""

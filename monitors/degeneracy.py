@@ -33,9 +33,11 @@ import math
 from typing import ClassVar
 
 import numpy as np
+import torch
 
 from icpbench.core.registry import Range
 from icpbench.monitors.base import Monitor
+from icpbench.monitors.differentiable import DiffInput, soft_within, straight_through
 from icpbench.monitors.inputs import MonitorInput
 
 
@@ -61,6 +63,7 @@ class DegeneracyMonitor(Monitor):
                                   "point-to-plane Hessian at the estimated pose")
     param_ranges: ClassVar[dict[str, Range]] = {"threshold": Range(3.0),
                                                 "gate_m": Range(0.0, lo_open=True)}
+    differentiable: ClassVar[bool] = True
 
     def __init__(self, *, threshold: float = 250.0, gate_m: float = 1.0) -> None:
         super().__init__(threshold=threshold, gate_m=gate_m)
@@ -74,3 +77,20 @@ class DegeneracyMonitor(Monitor):
             return math.inf
         lam = float(np.linalg.eigvalsh(translation_hessian(inp.normals()[nn.index[keep]]))[0])
         return k / lam if lam > 0 else math.inf
+
+    def _differentiable_score(self, x: DiffInput) -> torch.Tensor:
+        # the exact K / lambda_min, with the slope of the same ratio over logistic pair weights
+        # (a normal belongs to the map, so only the weights move: points entering or leaving
+        # the gate)
+        pr = x.pairs
+        keep = pr.within(self.gate_m)
+        k = int(keep.sum())
+        n_all = x.normals()[pr.index]
+        lam = (float(np.linalg.eigvalsh(translation_hessian(n_all[keep]))[0]) if k >= 3
+               else 0.0)
+        if lam <= 0:
+            return torch.tensor(math.inf, dtype=torch.float64)
+        w = soft_within(pr.dist, self.gate_m)
+        n = torch.as_tensor(n_all)
+        soft = w.sum() / torch.linalg.eigvalsh((n * w[:, None]).T @ n)[0]
+        return straight_through(k / lam, soft)

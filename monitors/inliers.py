@@ -22,8 +22,11 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import torch
+
 from icpbench.core.registry import Range
 from icpbench.monitors.base import Monitor
+from icpbench.monitors.differentiable import DiffInput, soft_within, straight_through
 from icpbench.monitors.inputs import MonitorInput
 
 
@@ -40,6 +43,7 @@ class InlierMonitor(Monitor):
                                   "estimated pose")
     param_ranges: ClassVar[dict[str, Range]] = {"threshold": Range(0.0, 1.0, hi_open=True),
                                                 "gate_m": Range(0.0, lo_open=True)}
+    differentiable: ClassVar[bool] = True
 
     def __init__(self, *, threshold: float = 0.4, gate_m: float = 0.5) -> None:
         super().__init__(threshold=threshold, gate_m=gate_m)
@@ -47,3 +51,9 @@ class InlierMonitor(Monitor):
 
     def _score(self, inp: MonitorInput) -> float:
         return 1.0 - float(inp.nearest.within(self.gate_m).mean())
+
+    def _differentiable_score(self, x: DiffInput) -> torch.Tensor:
+        # the exact outlier share, with the slope of a logistic count of the inliers
+        pr, n = x.pairs, x.scan.shape[0]
+        exact = 1.0 - float(pr.within(self.gate_m).sum()) / n
+        return straight_through(exact, 1.0 - soft_within(pr.dist, self.gate_m).sum() / n)

@@ -24,10 +24,12 @@ import hashlib
 from typing import ClassVar
 
 import numpy as np
+import torch
 
 from icpbench.core.errors import InputError
 from icpbench.core.registry import Range
 from icpbench.monitors.base import Monitor
+from icpbench.monitors.differentiable import DiffInput
 from icpbench.monitors.inputs import MonitorInput, MotionPrior
 
 #: 99% quantile of the chi distribution with 3 degrees of freedom: sqrt(chi2.ppf(0.99, 3)).
@@ -85,6 +87,7 @@ class OdometryMonitor(Monitor):
     param_ranges: ClassVar[dict[str, Range]] = {
         "threshold": Range(0.0, lo_open=True), "sigma0_m": Range(0.0, lo_open=True),
         "drift": Range(0.0, 1.0), "distance_m": Range(0.0, 1e6), "seed": Range(0, 2**63 - 1)}
+    differentiable: ClassVar[bool] = True
 
     def __init__(self, *, threshold: float = CHI3_99, sigma0_m: float = 0.1, drift: float = 0.01,
                  distance_m: float = 10.0, seed: int = 0) -> None:
@@ -104,3 +107,9 @@ class OdometryMonitor(Monitor):
                              "give MonitorInput(prior=monitor.motion_prior(T_gt, sample_id))")
         d = float(np.linalg.norm(inp.T_hat[:3, 3] - inp.prior.T_pred[:3, 3]))
         return d / inp.prior.sigma_m
+
+    def _differentiable_score(self, x: DiffInput) -> torch.Tensor:
+        if x.prior is None:
+            raise InputError(f"monitor 'odometry' needs a motion prior for sample {x.sample_id!r}")
+        t_pred = torch.as_tensor(x.prior.T_pred[:3, 3])
+        return torch.linalg.norm(x.T_hat[:3, 3].to(torch.float64) - t_pred) / x.prior.sigma_m

@@ -28,6 +28,7 @@ from icpbench.core.errors import InputError
 from icpbench.core.types import Batch, Registration
 from icpbench.monitors.base import Monitor
 from icpbench.monitors.inputs import MonitorInput, MotionPrior
+from icpbench.monitors.penalty import MonitorPenalty
 from icpbench.targets.base import Target
 from icpbench.targets.oracle import QueryOracle
 
@@ -137,6 +138,12 @@ class MonitoredOracle(QueryOracle):
             if err[k] > self.best_error[b]:
                 self.best_error[b], self.best_scan[b] = float(err[k]), scans[k].detach().clone()
         return np.where(flags, np.nan, err)
+
+    def penalty(self) -> MonitorPenalty:
+        """The monitors as a penalty on the batch's scans (their priors as drawn here), for the
+        gradient member of the ``ensemble`` (:mod:`icpbench.monitors.penalty`)."""
+        return MonitorPenalty(self.monitors, self.batch.maps, self.priors,
+                              [s.id for s in self.batch.samples])
 
     def keep_undetected(self, adv: torch.Tensor) -> torch.Tensor:
         """The scans (B, N, 3) to report for an attack that returned ``adv``: per sample, ``adv``

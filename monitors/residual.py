@@ -24,9 +24,11 @@ from __future__ import annotations
 from typing import ClassVar
 
 import numpy as np
+import torch
 
 from icpbench.core.registry import Range
 from icpbench.monitors.base import Monitor
+from icpbench.monitors.differentiable import DiffInput
 from icpbench.monitors.inputs import MonitorInput
 
 
@@ -46,6 +48,7 @@ class ResidualMonitor(Monitor):
     param_ranges: ClassVar[dict[str, Range]] = {"threshold": Range(0.0, lo_open=True),
                                                 "gate_m": Range(0.0, lo_open=True)}
     unit: ClassVar[str] = "m"
+    differentiable: ClassVar[bool] = True
 
     def __init__(self, *, threshold: float = 0.2, gate_m: float = 1.0) -> None:
         super().__init__(threshold=threshold, gate_m=gate_m)
@@ -60,3 +63,14 @@ class ResidualMonitor(Monitor):
         idx = nn.index[keep]
         r = np.einsum("ij,ij->i", normals[idx], nn.points[keep] - inp.map.points[idx])
         return float(np.sqrt(np.mean(r * r)))
+
+    def _differentiable_score(self, x: DiffInput) -> torch.Tensor:
+        # the same pairs as _score; the gradient moves the residuals, not which points are paired
+        pr = x.pairs
+        keep = np.flatnonzero(pr.within(self.gate_m))
+        if keep.size == 0:
+            return torch.tensor(self.gate_m, dtype=torch.float64)
+        idx = pr.index[keep]
+        n = torch.as_tensor(x.normals()[idx])
+        r = ((pr.points[torch.as_tensor(keep)] - torch.as_tensor(x.map.points[idx])) * n).sum(-1)
+        return torch.sqrt(torch.clamp(torch.mean(r * r), min=1e-24))

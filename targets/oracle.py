@@ -64,6 +64,12 @@ class QueryOracle:
         """The evaluated target's registry name."""
         return self.target.name
 
+    def penalty(self) -> Any:
+        """What a gradient attack subtracts from its objective so its candidates pass what this
+        oracle checks: None here (nothing is checked); a
+        :class:`~icpbench.monitors.penalty.MonitorPenalty` for a monitored oracle."""
+        return None
+
     def register(self, scans: torch.Tensor | np.ndarray, index: Sequence[int] | None = None
                  ) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Register adversarial scans with the target (one query per sample).

@@ -189,8 +189,8 @@ def test_search_patience_stops_a_scan_on_the_same_path_and_saves_its_queries(bat
 def test_ensemble_members_are_named_once_and_checked():
     assert EnsembleAttack().active == DEFAULT_MEMBERS
     assert set(DEFAULT_MEMBERS) <= set(MEMBERS) and DEFAULT_MEMBERS[-1] == "search"
-    # the monitor-aware member runs after every default one and is not a default
-    assert MEMBERS[-1] == "drift" and "drift" not in DEFAULT_MEMBERS
+    # the monitor-aware members run after every default one and are not defaults
+    assert MEMBERS[-2:] == ("drift", "refine") and not {"drift", "refine"} & set(DEFAULT_MEMBERS)
     ens = EnsembleAttack(members=" valley, uniform ")
     assert ens.active == ("uniform", "valley")  # run in the order of MEMBERS
     for bad in ("uniform,bogus", "uniform,uniform", " , "):

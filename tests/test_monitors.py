@@ -370,7 +370,7 @@ def test_drift_without_monitors_shifts_by_lambda_and_the_ensemble_adds_it_only_w
     monitored = MonitoredOracle(target, batch, batch.maps, [OdometryMonitor()])
     ens = registry.attacks.get("ensemble")
     assert "drift" not in ens().active_for(plain)
-    assert ens().active_for(monitored)[-1] == "drift"
+    assert ens().active_for(monitored)[-2:] == ("drift", "refine")
     assert ens(members="uniform,search").active_for(monitored) == ("uniform", "search")
     run = ens(members="uniform,drift").run(batch, 2.0, generator=0, oracle=monitored)
     err = run.extra["err_drift"].numpy()

@@ -29,7 +29,40 @@ def _env(plugin_path):
 def test_plugin_listed(plugin_path):
     out = subprocess.run([sys.executable, "-m", "icpbench.cli", "list"], capture_output=True,
                          text=True, env=_env(plugin_path), check=True).stdout
-    assert "jitter" in out and "kabsch-icp" in out
+    assert "jitter" in out and "kabsch-icp" in out and "spread" in out
+
+
+def test_plugin_monitor_scores_alike_in_numpy_and_torch_and_joins_a_monitored_run(plugin_path,
+                                                                                 tmp_path):
+    """The example monitor's differentiable score equals its score, and `icpbench run
+    --monitors spread --monitor-aware` calibrates it and reports its alarms."""
+    code = (
+        "import numpy as np, torch\n"
+        "from icpbench.core import registry\n"
+        "from icpbench.core.mapindex import MapIndex\n"
+        "from icpbench.monitors.base import MonitorInput\n"
+        "from icpbench.monitors.differentiable import DiffInput\n"
+        "m = registry.monitors.get('spread')()\n"
+        "rng = np.random.default_rng(0)\n"
+        "pts = rng.uniform(-5, 5, (2000, 3)); scan = pts[:500] + rng.normal(0, 0.05, (500, 3))\n"
+        "T = np.eye(4); T[:3, 3] = [0.2, -0.1, 0.0]\n"
+        "a = m.score(MonitorInput(scan=scan, map=MapIndex(pts), T_hat=T))\n"
+        "b = float(m.differentiable_score(DiffInput(torch.tensor(scan), torch.tensor(T),"
+        " MapIndex(pts))))\n"
+        "assert abs(a - b) < 1e-12 and a > 0.05, (a, b)\n"
+        "print('ok')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=_env(plugin_path))
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr
+    out = subprocess.run(
+        [sys.executable, "-m", "icpbench.cli", "run", "--dataset", "synthetic", "--attacks",
+         "none,uniform", "--targets", "p2plane", "--budgets", "0.5", "--samples", "3",
+         "--monitors", "spread,odometry", "--false-alarm-rate", "0.1",
+         "--calibration-samples", "10", "--monitor-aware", "--out", str(tmp_path), "--quiet"],
+        capture_output=True, text=True, env=_env(plugin_path))
+    assert out.returncode == 0, out.stderr
+    df = pd.read_csv(tmp_path / "results.csv")
+    assert df["extra"].str.contains("monitor_score.spread").all()
 
 
 def test_plugin_runs_through_icpbench_run(plugin_path, tmp_path):
