@@ -155,8 +155,8 @@ def test_penalised_gradient_ascent_stays_within_the_odometry_gate_where_plain_as
     check = MonitoredOracle(target, batch, batch.maps, monitors)
     assert np.isnan(check.errors(plain)).all()  # caught
     err = check.errors(penalised)
-    # the gate bounds the translation: a pure shift reaches at most its analytic edge; the
-    # error (eq. 1) also counts the rotation the ascent adds, so it is only asked to pass half
+    # a level shift reaches at most the gate's analytic edge; the ascent may also move the pose
+    # vertically onto the prediction's error and rotate it, so it is only asked to pass half
     edge = np.array([_gate_optimum(oracle.priors["odometry"][b], T_GT, 0.2) for b in range(2)])
     assert np.all(np.isfinite(err)) and np.all(err >= 0.5 * edge), (err, edge)
     assert np.all(check.last_scores["odometry"] <= gate.threshold)
