@@ -33,11 +33,11 @@ order they run; :data:`DEFAULT_MEMBERS` are the ones that run unless ``members``
                        member; added to the defaults when the oracle hides detected errors
                        (``--monitor-aware``, :data:`MONITOR_AWARE_MEMBERS`), where the other
                        members' candidates overshoot an odometry gate and it finds the gate's edge
-``refine``             projected gradient ascent (as ``pgd``, :data:`REFINE_STEPS` steps) from the best
-                       scan of every member before it: against a monitored oracle the error minus
-                       the monitors' differentiable scores, so it climbs from the best undetected
-                       scan along the edge of what the monitors accept. Not a default member;
-                       added with ``drift`` under ``--monitor-aware``
+``refine``             projected gradient ascent (as ``pgd``, :data:`REFINE_STEPS` steps) from
+                       the best scan of every member before it: against a monitored oracle the
+                       error minus the monitors' differentiable scores, so it climbs from the best
+                       undetected scan along the edge of what the monitors accept. Not a default
+                       member; added with ``drift`` under ``--monitor-aware``
 =====================  =========================================================================
 
 Every member's output is registered by the target (a query) and the scan with the largest

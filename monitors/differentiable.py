@@ -36,14 +36,12 @@ class Pairs:
     """Every scan point with a map point, at ``T_hat``.
 
     Attributes:
-        rows: (K,) int64 indices of those scan points (into the scan's N points).
         index: (K,) int64 index of each one's nearest map point.
         points: (K, 3) the scan points moved into the map frame (differentiable).
         dist: (K,) their distance to that map point (metres, differentiable).
         exact_dist: (K,) float64 numpy distances of the lookup (equal to ``dist``'s values).
     """
 
-    rows: np.ndarray
     index: np.ndarray
     points: torch.Tensor
     dist: torch.Tensor
@@ -95,10 +93,9 @@ class DiffInput:
         q = self.points
         dist, idx = self.map.query(q.detach().numpy())
         rows = np.flatnonzero(np.isfinite(dist))
-        m = torch.as_tensor(self.map.points[idx[rows]])
-        d = torch.linalg.norm(q[torch.as_tensor(rows)] - m, dim=-1)
-        return Pairs(rows=rows, index=idx[rows], points=q[torch.as_tensor(rows)], dist=d,
-                     exact_dist=dist[rows])
+        p = q[torch.as_tensor(rows)]
+        d = torch.linalg.norm(p - torch.as_tensor(self.map.points[idx[rows]]), dim=-1)
+        return Pairs(index=idx[rows], points=p, dist=d, exact_dist=dist[rows])
 
     def normals(self) -> np.ndarray:
         """(M, 3) unit normals of the map.

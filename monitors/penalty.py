@@ -19,6 +19,7 @@ not seen here (:attr:`MonitorPenalty.blind`); the oracle still checks them.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -83,9 +84,12 @@ class MonitorPenalty:
                 feasible[b] = False
                 pens.append(pen)
                 continue
+            # one input per sample, so the monitors without a prior share its nearest-map lookup
+            x = DiffInput(scans[b], T[b], m_idx, None, sid)
             for m in self.seen:
                 prior = self.priors.get(m.name, [None] * len(self.maps))[b]
-                s = m.differentiable_score(DiffInput(scans[b], T[b], m_idx, prior, sid))
+                s = m.differentiable_score(x if prior is None else
+                                           dataclasses.replace(x, prior=prior))
                 if not bool(torch.isfinite(s.detach())):
                     feasible[b] = False
                     continue
