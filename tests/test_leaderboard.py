@@ -75,7 +75,13 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     assert "rank 95% CI" in md and "95% CI [m]" in md
     res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(out)])
     assert res.exit_code == 0, res.output
-    assert "Kendall's tau = 1.00 over 3 variants" in (out / "leaderboard.md").read_text()
+    md = (out / "leaderboard.md").read_text()
+    assert "Kendall's tau = 1.00 over 3 variants" in md
+    # a board of some standard variants says which ones it leaves out, in the text and manifest
+    assert "8 of the 11 standard ones are not on it: `p2plane (no kernel)`" in md
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert len(manifest["standard_variants_missing"]) == 8
+    assert "kiss-icp" not in manifest["standard_variants_missing"]
     res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(tmp_path)])
     assert res.exit_code != 0 and "no board there" in res.output
 

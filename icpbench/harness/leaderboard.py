@@ -235,6 +235,13 @@ class LeaderboardConfig:
             raise InputError(f"two variants share a folder name: {slugs}")
         return chosen
 
+    def missing_standard(self) -> list[str]:
+        """Labels of :data:`STANDARD_VARIANTS` this board leaves out (``variants`` names a subset),
+        in their standard order; empty for a board of every standard variant."""
+        if self.variants is None:
+            return []
+        return [v.label for v in STANDARD_VARIANTS if v.label not in self.variants]
+
     def run_config(self, v: Variant) -> RunConfig:
         """The ``icpbench run`` configuration of one variant."""
         return RunConfig(dataset=self.dataset, dataset_params=dict(self.dataset_params),
@@ -614,6 +621,13 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
         f"{budgets[len(budgets) // 2]:g} m, most robust first.",
         "",
     ]
+    missing = cfg.missing_standard()
+    if missing:
+        lines += [f"**Not every standard variant:** this board ranks {len(order)} variant(s) "
+                  f"(`--variants`); {len(missing)} of the {len(STANDARD_VARIANTS)} standard "
+                  f"ones are not on it: {', '.join(f'`{m}`' for m in missing)}. Ranks, their "
+                  "intervals and any agreement below hold among the variants on this board only.",
+                  ""]
     mid = budgets[len(budgets) // 2]
     monitored = "undetected_mean" in board
     head = ["#", f"rank 95% CI (λ={mid:g})", "variant", "clean mean [m]"]
@@ -760,5 +774,6 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
         "skipped": skipped, "extra_not_run": board.attrs.get("extra_not_run", {}),
+        "standard_variants_missing": cfg.missing_standard(),
         "versions": package_versions(), "git": git_commit(), "finished": True,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
