@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from icpbench.core.errors import InputError
-from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement
+from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement, kendall_interval
 
 
 def test_paired_resampling_keeps_a_uniformly_worse_variant_behind():
@@ -48,3 +48,24 @@ def test_kendall_agreement_over_common_variants():
     assert n == 3 and tau == pytest.approx(1 / 3)  # one of three pairs swapped
     tau, p, n = kendall_agreement(a, {"kiss": 1.0, "x": 2.0})
     assert n == 1 and np.isnan(tau) and np.isnan(p)
+
+
+def test_kendall_interval_is_sure_of_separated_rankings_and_wide_for_ties():
+    rng = np.random.default_rng(3)
+    cols = ["a", "b", "c", "d"]
+    # four variants 1 m apart with 0.1 m noise: every resample keeps the order
+    far = pd.DataFrame(np.arange(1.0, 5.0) + 0.1 * rng.standard_normal((48, 4)), columns=cols)
+    other = pd.DataFrame(np.arange(1.0, 5.0) + 0.1 * rng.standard_normal((30, 4)), columns=cols)
+    assert kendall_interval(far, other) == (1.0, 1.0)
+    assert kendall_interval(far, other[cols[::-1]].set_axis(cols, axis=1)) == (-1.0, -1.0)
+    # the same means, 2 m of noise: the rankings of resamples disagree, the interval is wide
+    near = pd.DataFrame(np.arange(1.0, 5.0) * 0.05 + 2 * rng.standard_normal((48, 4)), columns=cols)
+    lo, hi = kendall_interval(near, near.copy(), seed=1)
+    assert lo <= -0.3 and hi >= 0.6
+    # only the variants both boards hold count; NaN below two; a board without scans is refused
+    assert kendall_interval(far.assign(x=9.0), other) == (1.0, 1.0)
+    assert all(np.isnan(kendall_interval(far[["a"]], other[["a", "b"]])))
+    with pytest.raises(InputError):
+        kendall_interval(far.iloc[:0], other)
+    with pytest.raises(InputError):
+        kendall_interval(far, other, n_boot=0)

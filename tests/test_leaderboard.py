@@ -76,7 +76,20 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(out)])
     assert res.exit_code == 0, res.output
     md = (out / "leaderboard.md").read_text()
-    assert "Kendall's tau = 1.00 over 3 variants" in md
+    # the interval of tau resamples each board's scans: against itself it is at most 1 wide
+    m = re.search(r"Kendall's tau = 1\.00 \(95% bootstrap interval (-?[\d.]+) to (-?[\d.]+), "
+                  r"each board's scans resampled\) over 3 variants", md)
+    assert m is not None, md
+    assert -1.0 <= float(m[1]) <= float(m[2]) == 1.0
+    # a board copied without its runs still gives tau, and says why it has no interval
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("leaderboard.csv", "manifest.json"):
+        (bare / name).write_bytes((out / name).read_bytes())
+    res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(bare)])
+    assert res.exit_code == 0, res.output
+    md = (out / "leaderboard.md").read_text()
+    assert "Kendall's tau = 1.00 (no interval: " in md and "is missing" in md
     # a board of some standard variants says which ones it leaves out, in the text and manifest
     assert "8 of the 11 standard ones are not on it: `p2plane (no kernel)`" in md
     manifest = json.loads((out / "manifest.json").read_text())

@@ -10,7 +10,8 @@ the Bootstrap", 1993, ch. 13; rank intervals as in Hall and Miller, "Using the b
 quantify the authority of an empirical ranking", Ann. Statist. 2009). Rank 1 is the most robust
 (smallest mean worst case). Two boards (e.g. two data domains) agree as much as Kendall's tau of
 their rankings over the variants both hold says (Kendall, "A new measure of rank correlation",
-Biometrika 1938).
+Biometrika 1938); the interval of tau resamples each board's own scans, independently (two domains
+share no scan), and ranks the resampled means.
 
 Units: errors in metres.
 """
@@ -81,3 +82,48 @@ def kendall_agreement(a: Mapping[str, float], b: Mapping[str, float]) -> tuple[f
         return float("nan"), float("nan"), len(common)
     res = stats.kendalltau([a[v] for v in common], [b[v] for v in common])
     return float(res.statistic), float(res.pvalue), len(common)
+
+
+def kendall_interval(a: pd.DataFrame, b: pd.DataFrame, n_boot: int = N_BOOT, seed: int = 0
+                     ) -> tuple[float, float]:
+    """Bootstrap 95 % percentile interval of Kendall's tau between two boards' rankings.
+
+    Each resample draws each board's scans with replacement, independently (the boards may be
+    measured on different scans: two domains), ranks the variants both boards hold by their
+    resampled mean, and takes tau-b of the two rankings (:func:`kendall_agreement`).
+
+    Args:
+        a, b: scans x variants worst-case errors (metres; NaN: no finite error, left out of the
+            mean) of the two boards, each at its ranking budget.
+        n_boot: resamples.
+        seed: seed of the resampling.
+
+    Returns:
+        ``(lo, hi)``: the 2.5 / 97.5 % percentiles of tau over the resamples where it is defined;
+        NaN when the boards share fewer than 2 variants.
+
+    Raises:
+        InputError: ``n_boot`` < 1, or a board with no scan.
+    """
+    if int(n_boot) < 1:
+        raise InputError(f"bootstrap of tau: n_boot must be >= 1, got {n_boot}")
+    if a.empty or b.empty:
+        raise InputError("bootstrap of tau: a board has no scans")
+    common = [v for v in a.columns if v in b.columns]
+    if len(common) < 2:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng(seed)
+    X, Y = a[common].to_numpy(dtype=float), b[common].to_numpy(dtype=float)
+    taus = np.full(int(n_boot), np.nan)
+    with warnings.catch_warnings():  # an all-NaN resampled column, or a constant ranking
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        for k in range(int(n_boot)):
+            mx = np.nanmean(X[rng.integers(0, X.shape[0], X.shape[0])], axis=0)
+            my = np.nanmean(Y[rng.integers(0, Y.shape[0], Y.shape[0])], axis=0)
+            taus[k] = kendall_agreement(dict(zip(common, mx, strict=True)),
+                                        dict(zip(common, my, strict=True)))[0]
+    taus = taus[np.isfinite(taus)]
+    if taus.size == 0:
+        return float("nan"), float("nan")
+    lo, hi = np.percentile(taus, [2.5, 97.5])
+    return float(lo), float(hi)

@@ -48,7 +48,7 @@ from icpbench.attacks.ensemble import MEMBERS, column
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
-from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement
+from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement, kendall_interval
 from icpbench.harness.outputs import claim, save_figure, write_csv, write_file, write_json
 from icpbench.harness.protocol import (
     STANDARD_DOMAINS,
@@ -537,6 +537,7 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
         .reset_index(drop=True)
     board.attrs["not_ranked"] = not_ranked
     board.attrs["extra_not_run"] = extra_not_run
+    board.attrs["per_scan"] = {lam: pd.DataFrame(series) for lam, series in per_scan.items()}
     return board
 
 
@@ -751,8 +752,54 @@ def agreement_line(board: pd.DataFrame, other: Path) -> str:
         return b[np.isclose(b.budget, mid)].set_index("variant").amplification.to_dict()
 
     tau, p, n = kendall_agreement(scores(board), scores(theirs))
+    mine, why = _ranking_scans(board), None
+    try:
+        other_scans = board_scans(other)
+    except InputError as exc:
+        other_scans, why = None, str(exc)
+    if mine is not None and other_scans is not None:
+        lo, hi = kendall_interval(mine, other_scans)
+        spread = (f" (95% bootstrap interval {_fmt(lo)} to {_fmt(hi)}, each board's scans "
+                  "resampled)")
+    else:
+        spread = f" (no interval: {why or 'this board has no per-scan errors'})"
     return (f"Agreement with the ranking of `{other}` (domain `{domain}`): Kendall's tau = "
-            f"{_fmt(tau)} over {n} variants (two-sided p = {_fmt(p, 3)}; 1 is the same order).")
+            f"{_fmt(tau)}{spread} over {n} variants (two-sided p = {_fmt(p, 3)}; 1 is the same "
+            "order).")
+
+
+def _ranking_scans(board: pd.DataFrame) -> pd.DataFrame | None:
+    """Scans x variants worst-case errors (metres) of ``board`` at its ranking (middle) budget, as
+    :func:`summarise` kept them; None if it kept none."""
+    per_scan = board.attrs.get("per_scan") or {}
+    budgets = sorted(per_scan)
+    return per_scan[budgets[len(budgets) // 2]] if budgets else None
+
+
+def board_scans(folder: Path) -> pd.DataFrame:
+    """Scans x variants worst-case errors (metres) at the ranking budget of the board written in
+    ``folder``, recomputed from its runs (``runs/<variant>``) as its manifest names them.
+
+    Raises:
+        InputError: no board manifest with its variants, or a variant's run folder is missing.
+    """
+    manifest = read_manifest(folder) or {}
+    variants, cfg = manifest.get("variants"), manifest.get("config") or {}
+    if not variants:
+        raise InputError(f"{folder}: no board manifest naming its variants")
+    runs = {}
+    for v in variants:
+        path = folder / "runs" / Variant(v["label"], v["target"], v.get("params") or {}).slug
+        if not (path / "results.csv").is_file():
+            raise InputError(f"{folder}: the run of {v['label']!r} is missing ({path})")
+        runs[v["label"]] = path
+    skipped = set(manifest.get("skipped") or {})
+    runs = {k: p for k, p in runs.items() if k not in skipped}
+    scans = _ranking_scans(summarise(runs, cfg.get("budgets") or [1.0],
+                                     cfg.get("extra_attacks") or []))
+    if scans is None:
+        raise InputError(f"{folder}: its runs hold no ensemble rows")
+    return scans
 
 
 def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
