@@ -9,6 +9,7 @@ the machine's speed.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import signal
@@ -108,6 +109,20 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def _kill_all(proc: subprocess.Popen) -> None:
+    """Kill the command and every process below it, then collect its output: a killed command
+    cannot stop its workers, and they would hold its pipes open (a test that failed early must
+    fail, not hang)."""
+    if proc.poll() is None:
+        below = _descendants(proc.pid)
+        proc.kill()
+        for pid in below:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.communicate(timeout=30)
+
+
 def _start(tmp_path: Path, phase: str, executor: str = "local") -> tuple[subprocess.Popen, Path]:
     (tmp_path / "stop_test_plugin.py").write_text(PLUGIN)
     out = tmp_path / "out"
@@ -180,9 +195,7 @@ def test_a_stop_signal_gives_one_true_line_and_leaves_no_process(tmp_path, phase
         line = _stopped(proc, sig, out, children)
         assert ("result row(s) are saved" in line) is saved
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        _kill_all(proc)
 
 
 #: A signal before the interpreter has run any of icpbench (its own start-up, slow on a busy
@@ -200,7 +213,5 @@ def test_ctrl_c_at_any_moment_of_the_start_gives_one_line(tmp_path, delay):
         children = _descendants(proc.pid)
         _stopped(proc, signal.SIGINT, out, children)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        _kill_all(proc)
 
