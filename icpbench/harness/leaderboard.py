@@ -787,14 +787,15 @@ def board_scans(folder: Path) -> pd.DataFrame:
     variants, cfg = manifest.get("variants"), manifest.get("config") or {}
     if not variants:
         raise InputError(f"{folder}: no board manifest naming its variants")
+    skipped = set(manifest.get("skipped") or {})  # never run: no folder to look for
     runs = {}
     for v in variants:
+        if v["label"] in skipped:
+            continue
         path = folder / "runs" / Variant(v["label"], v["target"], v.get("params") or {}).slug
         if not (path / "results.csv").is_file():
             raise InputError(f"{folder}: the run of {v['label']!r} is missing ({path})")
         runs[v["label"]] = path
-    skipped = set(manifest.get("skipped") or {})
-    runs = {k: p for k, p in runs.items() if k not in skipped}
     scans = _ranking_scans(summarise(runs, cfg.get("budgets") or [1.0],
                                      cfg.get("extra_attacks") or []))
     if scans is None:
