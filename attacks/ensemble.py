@@ -119,6 +119,11 @@ def column(member: str) -> str:
     return "err_" + member.replace("-", "_")
 
 
+def seconds_column(member: str) -> str:
+    """The ``extra`` key of a member's attack time per scan, seconds (``s_sector_adaptive``)."""
+    return "s_" + member.replace("-", "_")
+
+
 def parse_members(members: str | list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
     """The members named by ``members`` (comma-separated text or a list; None: the defaults), in
     the order of :data:`MEMBERS`.
@@ -282,7 +287,7 @@ class EnsembleAttack(Attack):
                                  ).scans.to(torch.float64)
                 err = oracle.errors(adv)
             extra[column(name)] = err
-            extra["s_" + name.replace("-", "_")] = np.full(B, (time.perf_counter() - t0) / B)
+            extra[seconds_column(name)] = np.full(B, (time.perf_counter() - t0) / B)
             better = score(err) > score(best_err)
             if better.any():
                 sel = torch.as_tensor(better)

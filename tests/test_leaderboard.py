@@ -60,6 +60,14 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     assert [v.strip() for _, v in ranked] == list(mid.variant)
     won = board[[c for c in board if c.startswith("won_")]].sum(axis=1)
     assert (won == board.scans).all()
+    # each member's own time is part of the attack's: together at most the whole, each > 0
+    sec = board[[f"sec_{m}" for m in ("uniform", "sector-adaptive", "pgd", "spoof", "valley")]]
+    assert (sec.to_numpy() > 0).all()
+    assert (board[[c for c in board if c.startswith("sec_")]].fillna(0).sum(axis=1)
+            <= board.attack_s + 1e-6).all()
+    spent = re.search(r"^\| p2point \| [^|]+ \| [^|]+ \| \d+ \((\d+\.\d) s\) \|", md, flags=re.M)
+    assert spent is not None, md  # the uniform member's cell: wins (seconds)
+    assert spent.group(1) == f"{board[board.variant == 'p2point'].sec_uniform.mean():.1f}"
     assert (out / "leaderboard.png").stat().st_size > 10_000
     assert (out / "manifest.json").is_file()
     # a second call resumes: same board, nothing recomputed

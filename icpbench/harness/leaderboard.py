@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from icpbench.attacks.ensemble import MEMBERS, column
+from icpbench.attacks.ensemble import MEMBERS, column, seconds_column
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
@@ -519,6 +519,9 @@ def summarise(runs: dict[str, Path], budgets: Sequence[float],
                 row[f"won_{m}"] = int((win == i).sum())
                 ran = e.get(f"extra.{column(m)}")
                 row[f"ran_{m}"] = ran is not None and bool(ran.notna().any())
+                sec = e.get(f"extra.{seconds_column(m)}")
+                row[f"sec_{m}"] = float(sec.mean()) if sec is not None and sec.notna().any() \
+                    else math.nan
             for a in extra_attacks:  # an attack that did not run won nothing, lost nothing
                 ran = label not in extra_not_run.get(a, {})
                 row[f"won_extra_{a}"] = int(won_extra[a].sum()) if ran else math.nan
@@ -583,6 +586,16 @@ def _intervals(per_scan: dict[float, dict[str, pd.Series]]) -> pd.DataFrame:
         ci = bootstrap_ranks(errors).rename(columns={"mean_lo": "worst_lo", "mean_hi": "worst_hi"})
         parts.append(ci.drop(columns="mean").assign(budget=lam).rename_axis("variant"))
     return pd.concat(parts).reset_index().set_index(["budget", "variant"])
+
+
+def _wins_and_seconds(rows: pd.DataFrame, member: str) -> str:
+    """A member's cell of the cost table: its wins over a variant's ``rows`` (one per budget) and,
+    where the runs recorded it, its mean seconds per scan, e.g. ``16 (28.6 s)``."""
+    wins = str(int(rows[f"won_{member}"].sum()))
+    sec = rows.get(f"sec_{member}")
+    if sec is None or not sec.notna().any():  # a board written before the times were kept
+        return wins
+    return f"{wins} ({float(sec.mean()):.1f} s)"
 
 
 def _rank_range(lo: float, hi: float) -> str:
@@ -667,7 +680,8 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
               "variant), 2.5-97.5 %; rank 1 is the most robust. Variants whose rank intervals "
               "overlap are not told apart by these scans."]
     lines += ["", "Attack cost per scan (seconds, queries) and the member that found each scan's "
-              "worst case (counts over all budgets):", ""]
+              "worst case (counts over all budgets), with, in brackets, the member's own mean "
+              "seconds per scan (its queries, plans and gradients; over all budgets):", ""]
     head = ["variant", *[f"λ={lam:g}: s / queries" for lam in budgets], *members,
             *[f"+ {a}" for a in extras]]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -675,7 +689,7 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
         r = board[board.variant == v].set_index("budget")
         cells = [v] + [f"{_fmt(r.loc[lam].attack_s, 1)} / {_fmt(r.loc[lam].queries, 0)}"
                        if lam in r.index else "-" for lam in budgets]
-        cells += [str(int(r[f"won_{m}"].sum())) for m in members]
+        cells += [_wins_and_seconds(r, m) for m in members]
         cells += ["did not run" if r[f"won_extra_{a}"].isna().all() else
                   str(int(r[f"won_extra_{a}"].sum())) for a in extras]
         lines.append("| " + " | ".join(cells) + " |")
