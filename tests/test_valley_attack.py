@@ -18,6 +18,7 @@ from icpbench.attacks.spoof import SpoofAttack, spoofed_displacement
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.attacks.valley import ValleyAttack, candidates, choose, line_climbs, rho, valley_displacement
 from icpbench.core.cost_sensitivity import CostSpec
+from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
 from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.p2point import PointToPointICP
@@ -89,6 +90,43 @@ def test_the_chosen_displacement_climbs_less_than_the_spoof_along_the_line():
     # the cross wall pulls a spoofed scan back once the pose passes lambda; the choice keeps the
     # cost from climbing as much anywhere on the line
     assert largest_climb(ours) < 0.8 * largest_climb(spoof)  # measured: 0.73
+
+
+@pytest.mark.parametrize("steps", [1, 4, 8])
+def test_the_lines_climbs_add_up_to_the_cost_between_its_ends_at_any_number_of_steps(steps):
+    # the climbs telescope: on any number of steps they sum to the model cost at D minus the
+    # cost at the true pose, per candidate and point, so a coarser line changes where the
+    # climbs are looked at, not what they add up to
+    m, n = _street()
+    index = MapIndex(m, n)
+    p_map = m[::3] + np.array([0.0, -0.4, 0.1])
+    D = np.array([1.5, 0.5, 0.0])
+    cand = candidates(p_map, D, index, 0.6)
+    climbs = line_climbs(p_map, cand, D, index, COST, steps)
+    assert climbs.shape == (len(cand), steps, len(p_map))
+    ends = np.stack([rho(index.query(p_map + c + a * D)[0], COST) for c in cand for a in (0, 1)])
+    np.testing.assert_allclose(climbs.sum(axis=1), (ends[1::2] - ends[0::2]), atol=1e-12)
+
+
+def test_valley_plans_on_its_line_steps_and_refuses_bad_ones(scene_pair):
+    with pytest.raises(InputError, match="line_steps"):
+        ValleyAttack(line_steps=0)
+    with pytest.raises(InputError, match="line_steps"):
+        ValleyAttack(line_steps=2.5)
+    att = ValleyAttack(queries=3, line_steps=4)
+    assert att.settings()["line_steps"] == 4
+    p_map = _street()[0][::3]
+    index = MapIndex(*_street())
+    D = np.array([2.0, 0.0, 0.0])
+    coarse = valley_displacement(p_map, np.eye(3), D, index, 0.6, COST, steps=4)
+    assert np.linalg.norm(coarse, axis=1).max() <= 0.6 * (1 + 1e-12)
+    # the plan is made on 4 steps: it differs from the 8-step one (the default) on some points
+    fine = valley_displacement(p_map, np.eye(3), D, index, 0.6, COST)
+    assert np.any(np.abs(coarse - fine) > 1e-9)
+    out = att.run(scene_pair, LAM, oracle=QueryOracle.prepared(PointToPointICP("lidar"), scene_pair),
+                  generator=0)
+    assert out.extra["queries"].tolist() == [3, 3]
+    assert (out.scans.to(torch.float64) - scene_pair.scans).norm(dim=-1).max() <= LAM * (1 + 1e-6)
 
 
 def test_valley_keeps_the_budget_spends_its_queries_and_leads_farther_than_spoof(scene_pair):
