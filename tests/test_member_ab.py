@@ -1,0 +1,52 @@
+"""scripts/member_ab.py: a member run alone reproduces the error its board recorded for it, and a
+changed setting is run on the same scans."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from icpbench.cli import app
+
+_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "member_ab.py"
+
+
+@pytest.fixture(scope="module")
+def member_ab():
+    spec = importlib.util.spec_from_file_location("member_ab_script", _SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_a_member_alone_reproduces_its_board_and_runs_the_changed_setting(member_ab, tmp_path):
+    board = tmp_path / "board"
+    res = CliRunner().invoke(app, [
+        "leaderboard", "--samples", "2", "--dataset", "synthetic", "--dataset-param", "n_scan=600",
+        "--dataset-param", "n_map=6000", "--budgets", "0.5", "--ensemble-param", "queries=2",
+        "--ensemble-param", "pgd_steps=1", "--ensemble-param", "sector_iterations=1",
+        "--ensemble-param", "spoof_queries=3", "--ensemble-param", "valley_queries=2",
+        "--variants", "p2point", "--quiet", "--out", str(board)])
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "ab.csv"
+    table = member_ab.main(["--board", str(board), "--variant", "p2point", "--member", "valley",
+                            "--set", "line_steps=2", "--samples", "2", "--out", str(out)])
+    rows = pd.read_csv(out)
+    a, b = rows[rows.arm == "A"], rows[rows.arm == "B"]
+    assert len(a) == len(b) == 2
+    # arm A is the board's own valley: the same error on every scan
+    np.testing.assert_allclose(a.err, a.board_err, rtol=1e-9)
+    assert table.loc["A", "larger_share"] == 0.0
+    # the estimate of the worst case is never below the board's other members nor arm B
+    assert (table.worst_estimate >= table.member_mean - 1e-12).all()
+    assert np.isclose(table.loc["A", "worst_estimate"], table.loc["A", "board_worst"])
+    assert (b.seconds > 0).all() and np.isfinite(b.err).all()
+    with pytest.raises(SystemExit, match="--member"):
+        member_ab.plan(board, "p2point", "search", {}, 2)
+    with pytest.raises(SystemExit, match="unknown --variant"):
+        member_ab.plan(board, "bogus", "valley", {}, 2)
