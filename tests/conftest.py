@@ -1,7 +1,10 @@
 """Shared test settings: one torch thread (measured 5-17x faster than 2 on this 2-core VM for
 small tensors) and a per-session dataset cache."""
 
+import importlib.util
 import os
+from pathlib import Path
+from types import ModuleType
 
 import pytest
 import torch
@@ -55,3 +58,18 @@ def scene_pair():
 
     return Batch.from_samples([scene_sample(n_scan=800, n_map=8000, seed=s, scene_seed=1)
                                for s in (3, 4)])
+
+
+@pytest.fixture(scope="session")
+def load_script():
+    """A loader of ``scripts/<name>.py`` as a module (scripts are not a package), for tests of
+    their functions: ``load_script("frontier")``."""
+    return _load_script
+
+
+def _load_script(name: str) -> ModuleType:
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"{name}_script", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

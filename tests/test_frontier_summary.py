@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
-_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "frontier.py"
-
 
 @pytest.fixture(scope="module")
-def frontier():
-    spec = importlib.util.spec_from_file_location("frontier_script", _SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def frontier(load_script):
+    return load_script("frontier")
 
 
 def _write(folder: Path, errs: dict[float, list[float]], conv: bool = True) -> None:

@@ -3,9 +3,6 @@ changed setting is run on the same scans."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,15 +10,10 @@ from typer.testing import CliRunner
 
 from icpbench.cli import app
 
-_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "member_ab.py"
-
 
 @pytest.fixture(scope="module")
-def member_ab():
-    spec = importlib.util.spec_from_file_location("member_ab_script", _SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+def member_ab(load_script):
+    return load_script("member_ab")
 
 
 def test_a_member_alone_reproduces_its_board_and_runs_the_changed_setting(member_ab, tmp_path):
