@@ -9,7 +9,9 @@ mean error against the board's, the share of scans where it is larger, an estima
 ensemble's worst case with it (per scan the larger of the board's other members and the arm's;
 optimistic where the query search, which starts from the best member, would have started
 elsewhere) and its seconds per scan, all measured in this run so the two arms' times compare.
-It writes every row to ``--out`` (CSV: arm, sample_id, err, seconds, board_err, board_worst).
+It writes every row to ``--out`` (CSV: arm, sample_id, err, seconds, board_err, board_worst,
+worst_estimate) and beside it a manifest (``.json``: the command, both arms' settings, the
+summary, the commit).
 
 This is how a cheaper member setting is checked before it goes into a new version of the
 standard protocol, without rerunning whole boards (CHANGELOG.md, 2026-11-27: ``valley`` with
@@ -27,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -168,6 +171,16 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     table = summarise(res, rows, args.member)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     res.to_csv(args.out, index=False)
+    from icpbench.harness.outputs import write_json
+    from icpbench.harness.runner import git_commit, package_versions
+
+    write_json(args.out.with_suffix(".json"), {
+        "command": "python scripts/member_ab.py " + " ".join(argv if argv is not None
+                                                                else sys.argv[1:]),
+        "board": str(args.board), "variant": args.variant, "member": args.member,
+        "settings": setup["settings"], "budget": setup["budget"], "scans": len(rows),
+        "workers": args.workers, "summary": table.reset_index().to_dict(orient="records"),
+        "git": git_commit(), "versions": package_versions()})
     print(f"{args.member} on {args.variant}, {len(rows)} scans; B: {changes}")
     print(table.to_string(float_format=lambda x: f"{x:.3f}"))
     return table

@@ -3,6 +3,8 @@ changed setting is run on the same scans."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -38,6 +40,9 @@ def test_a_member_alone_reproduces_its_board_and_runs_the_changed_setting(member
     assert (table.worst_estimate >= table.member_mean - 1e-12).all()
     assert np.isclose(table.loc["A", "worst_estimate"], table.loc["A", "board_worst"])
     assert (b.seconds > 0).all() and np.isfinite(b.err).all()
+    manifest = json.loads(out.with_suffix(".json").read_text())
+    assert manifest["settings"]["B"]["line_steps"] == 2 and manifest["settings"]["A"]["line_steps"] == 8
+    assert "commit" in manifest["git"]
     with pytest.raises(SystemExit, match="--member"):
         member_ab.plan(board, "p2point", "search", {}, 2)
     with pytest.raises(SystemExit, match="unknown --variant"):
