@@ -169,9 +169,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         done = [_job(w) for w in work]
     res = pd.DataFrame(done).sort_values(["arm", "sample_id"]).reset_index(drop=True)
     table = summarise(res, rows, args.member)
+    from icpbench.harness.outputs import write_csv, write_json
+
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    res.to_csv(args.out, index=False)
-    from icpbench.harness.outputs import write_json
+    write_csv(args.out, res, index=False)
     from icpbench.harness.runner import git_commit, package_versions
 
     write_json(args.out.with_suffix(".json"), {
