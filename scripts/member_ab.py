@@ -124,7 +124,8 @@ def _job(args: tuple[dict[str, Any], str, int]) -> dict[str, Any]:
 
 def summarise(res: pd.DataFrame, rows: pd.DataFrame, member: str) -> pd.DataFrame:
     """Per arm: member mean error, the board's, share larger, estimated worst case, the board's,
-    seconds per scan. ``res`` gets the columns ``board_err`` and ``board_worst``."""
+    seconds per scan. ``res`` gets the columns ``board_err``, ``board_worst`` and
+    ``worst_estimate``."""
     from icpbench.attacks.ensemble import MEMBERS, column
 
     r = rows.set_index("sample_id")
@@ -170,11 +171,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     res = pd.DataFrame(done).sort_values(["arm", "sample_id"]).reset_index(drop=True)
     table = summarise(res, rows, args.member)
     from icpbench.harness.outputs import write_csv, write_json
+    from icpbench.harness.runner import git_commit, package_versions
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_csv(args.out, res, index=False)
-    from icpbench.harness.runner import git_commit, package_versions
-
     write_json(args.out.with_suffix(".json"), {
         "command": "python scripts/member_ab.py " + " ".join(argv if argv is not None
                                                                 else sys.argv[1:]),
