@@ -13,7 +13,7 @@ order they run; :data:`DEFAULT_MEMBERS` are the ones that run unless ``members``
 ``normal``             every point by lambda along its map normal, projected to x-y (paper);
                        not a default member (it never won a scan of the 48-scan board)
 ``sector``             the analytic one-step point-to-plane worst case (Laconte et al., RA-L 2024);
-                       not a default member (never won a scan)
+                       rarely the worst itself, but the start PGD climbs from on GICP
 ``sector-adaptive``    the one-step worst case of the target's *own* cost, re-linearised where the
                        target lands (queries only; :mod:`icpbench.attacks.sector_adaptive`)
 ``pgd``                projected gradient ascent through the run's surrogate, started from the best
@@ -85,7 +85,10 @@ from icpbench.targets.oracle import QueryOracle
 
 #: Query budgets of ``spoof`` and ``valley`` in the ensemble, the headings each queries first and
 #: the headings it screens by the map's misfit before (docs/methods.md, "The standard ensemble").
-SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 16, 8, 0
+SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 12, 8, 0
+#: Steps of the line to the wrong pose on which ``valley`` models the target's cost in the ensemble
+#: (:class:`~icpbench.attacks.valley.ValleyAttack` ``line_steps``; its own default is finer).
+VALLEY_LINE_STEPS = 4
 #: The search member stops a scan after this many queries in a row without a larger error.
 SEARCH_PATIENCE = 8
 #: Query budget of the ``drift`` member.
@@ -98,9 +101,10 @@ REFINE_STEPS = 10
 MEMBERS: tuple[str, ...] = ("uniform", "normal", "sector", "sector-adaptive", "pgd", "spoof",
                             "valley", "search", "drift", "refine")
 #: The members that run by default (``members`` setting): every member that won a scan of the
-#: 48-scan board, and ``uniform``, the reference of every "x uniform" figure.
-DEFAULT_MEMBERS: tuple[str, ...] = ("uniform", "sector-adaptive", "pgd", "spoof", "valley",
-                                    "search")
+#: 48-scan board; ``uniform``, the reference of every "x uniform" figure; and ``sector``, from which
+#: PGD finds GICP's worst case on a fifth of its scans.
+DEFAULT_MEMBERS: tuple[str, ...] = ("uniform", "sector", "sector-adaptive", "pgd", "spoof",
+                                    "valley", "search")
 #: Members added to the defaults when the oracle hides the errors integrity monitors detect
 #: (:attr:`~icpbench.targets.oracle.QueryOracle.hides_detected`; ``--monitor-aware``); a run that
 #: names its members gets exactly those.
@@ -159,6 +163,7 @@ class EnsembleAttack(Attack):
         patience: the search stops a scan after this many queries in a row without a larger
             error (0: it spends every query).
         spoof_queries, valley_queries: query budgets of ``spoof`` and ``valley`` per scan.
+        valley_line_steps: steps of the line on which ``valley`` models the target's cost.
         directions: headings each of them queries in its first sweep.
         screen: headings each of them ranks by the map's misfit before choosing which to query
             (:func:`~icpbench.attacks.spoof.misfit`; 0: an even fan, no screen).
@@ -167,8 +172,8 @@ class EnsembleAttack(Attack):
     name: ClassVar[str] = "ensemble"
     cost_class: ClassVar[int] = 4
     description: ClassVar[str] = (
-        "Per scan, the worst error on the evaluated target over uniform, sector-adaptive, PGD "
-        "(through the target or its replica), spoof, valley and a query search from the best"
+        "Per scan, the worst error on the evaluated target over uniform, sector, sector-adaptive, "
+        "PGD (through the target or its replica), spoof, valley and a query search from the best"
     )
     needs_oracle: ClassVar[bool] = True
     uses_surrogate: ClassVar[bool] = True
@@ -177,17 +182,19 @@ class EnsembleAttack(Attack):
         "sector_iterations": Range(0, 100_000), "queries": Range(0, 10_000_000),
         "spoof_queries": Range(1, 10_000_000), "valley_queries": Range(1, 10_000_000),
         "directions": Range(1, 100_000), "screen": Range(0, 100_000),
-        "patience": Range(0, 10_000_000)}
+        "patience": Range(0, 10_000_000), "valley_line_steps": Range(1, 10_000)}
 
     def __init__(self, *, strict: bool = False, members: str | None = None, pgd_steps: int = 5,
                  pgd_step_size: float = 0.1, sector_iterations: int = 4, queries: int = 20,
                  spoof_queries: int = SPOOF_QUERIES, valley_queries: int = VALLEY_QUERIES,
                  directions: int = DIRECTIONS, screen: int = SCREEN,
-                 patience: int = SEARCH_PATIENCE, **params: Any) -> None:
+                 patience: int = SEARCH_PATIENCE, valley_line_steps: int = VALLEY_LINE_STEPS,
+                 **params: Any) -> None:
         for nm, v, lo in (("pgd_steps", pgd_steps, 0), ("sector_iterations", sector_iterations, 0),
                           ("queries", queries, 0), ("spoof_queries", spoof_queries, 1),
                           ("valley_queries", valley_queries, 1), ("directions", directions, 1),
-                          ("screen", screen, 0), ("patience", patience, 0)):
+                          ("screen", screen, 0), ("patience", patience, 0),
+                          ("valley_line_steps", valley_line_steps, 1)):
             if isinstance(v, bool) or int(v) != v or int(v) < lo:
                 raise InputError(f"{self.name} {nm} must be an integer >= {lo}, got {v!r}")
         self.active = parse_members(members)
@@ -206,14 +213,16 @@ class EnsembleAttack(Attack):
             "sector-adaptive": SectorAdaptiveAttack(strict=strict,
                                                     iterations=int(sector_iterations)),
             "spoof": SpoofAttack(strict=strict, queries=int(spoof_queries), **spoofing),
-            "valley": ValleyAttack(strict=strict, queries=int(valley_queries), **spoofing),
+            "valley": ValleyAttack(strict=strict, queries=int(valley_queries),
+                                   line_steps=int(valley_line_steps), **spoofing),
             "drift": DriftAttack(strict=strict, queries=DRIFT_QUERIES, directions=int(directions)),
         }
         super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
                          sector_iterations=int(sector_iterations), queries=self.queries,
                          spoof_queries=int(spoof_queries), valley_queries=int(valley_queries),
                          directions=int(directions), screen=int(screen),
-                         patience=int(patience), members=list(self.active), **params)
+                         patience=int(patience), valley_line_steps=int(valley_line_steps),
+                         members=list(self.active), **params)
 
     def active_for(self, oracle: QueryOracle | None) -> tuple[str, ...]:
         """The members that run against ``oracle``: the chosen ones, plus

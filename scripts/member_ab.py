@@ -61,6 +61,7 @@ def plan(board: Path, variant: str, member: str, changes: dict[str, Any], sample
             member that depends on the members before it.
     """
     from icpbench.attacks.ensemble import EnsembleAttack, column
+    from icpbench.attacks.valley import LINE_STEPS
     from icpbench.harness.leaderboard import STANDARD_VARIANTS
     from icpbench.harness.results import load_results
 
@@ -77,6 +78,8 @@ def plan(board: Path, variant: str, member: str, changes: dict[str, Any], sample
     manifest = json.loads((run / "manifest.json").read_text())
     cfg = manifest["config"]
     ens_settings = {k: x for k, x in manifest["attacks"]["ensemble"].items() if k != "strict"}
+    # boards made before the ensemble had this setting ran valley on its own default
+    ens_settings.setdefault("valley_line_steps", LINE_STEPS)
     ens = EnsembleAttack(**ens_settings)
     base = {k: x for k, x in ens.members[member].settings().items() if k != "strict"}
     df = load_results(run)

@@ -16,7 +16,7 @@ mkdir -p "$OUT"
 } > "$OUT/summary.md"
 for v in "small-gicp plane ICP" "p2plane (Cauchy)" "p2point"; do
   slug=$(echo "$v" | sed -E 's/[^A-Za-z0-9._-]+/-/g; s/^[-.]+//; s/[-.]+$//')
-  { echo; echo '```'; python scripts/member_ab.py --board results/leaderboard --variant "$v" \
+  { echo; echo '```'; python scripts/member_ab.py --board results/leaderboard-v1 --variant "$v" \
       --member valley --set line_steps=4 --samples 16 --workers 2 --out "$OUT/$slug.csv"
     echo '```'; } | tee -a "$OUT/summary.md"
 done

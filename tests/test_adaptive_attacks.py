@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.attacks.ensemble import DEFAULT_MEMBERS, MEMBERS, EnsembleAttack, column
+from icpbench.attacks.ensemble import (
+    DEFAULT_MEMBERS,
+    MEMBERS,
+    VALLEY_LINE_STEPS,
+    EnsembleAttack,
+    column,
+)
 from icpbench.attacks.normal import NormalTranslationAttack
 from icpbench.attacks.search import QuerySearchAttack
 from icpbench.attacks.sector import SectorAttack
@@ -196,6 +202,13 @@ def test_ensemble_members_are_named_once_and_checked():
     for bad in ("uniform,bogus", "uniform,uniform", " , "):
         with pytest.raises(InputError, match="ensemble members"):
             EnsembleAttack(members=bad)
+    # valley's line steps are the ensemble's setting, recorded with the others
+    assert EnsembleAttack().members["valley"].line_steps == VALLEY_LINE_STEPS
+    two = EnsembleAttack(valley_line_steps=2)
+    assert two.members["valley"].line_steps == 2 and two.settings()["valley_line_steps"] == 2
+    for bad_steps in (0, 1.5, True):
+        with pytest.raises(InputError, match="valley_line_steps"):
+            EnsembleAttack(valley_line_steps=bad_steps)
 
 
 def test_the_generator_takes_each_targets_own_surrogate_under_surrogate_self(tmp_path):

@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
+from icpbench.attacks.ensemble import VALLEY_LINE_STEPS
 from icpbench.cli import app
 
 
@@ -41,7 +42,15 @@ def test_a_member_alone_reproduces_its_board_and_runs_the_changed_setting(member
     assert np.isclose(table.loc["A", "worst_estimate"], table.loc["A", "board_worst"])
     assert (b.seconds > 0).all() and np.isfinite(b.err).all()
     manifest = json.loads(out.with_suffix(".json").read_text())
-    assert manifest["settings"]["B"]["line_steps"] == 2 and manifest["settings"]["A"]["line_steps"] == 8
+    assert manifest["settings"]["A"]["line_steps"] == VALLEY_LINE_STEPS
+    assert manifest["settings"]["B"]["line_steps"] == 2
+    # a board recorded before the ensemble had valley_line_steps ran valley on 8 steps
+    run_manifest = board / "runs" / "p2point" / "manifest.json"
+    m = json.loads(run_manifest.read_text())
+    del m["attacks"]["ensemble"]["valley_line_steps"]
+    run_manifest.write_text(json.dumps(m))
+    setup, _, _ = member_ab.plan(board, "p2point", "valley", {}, 2)
+    assert setup["settings"]["A"]["line_steps"] == 8
     assert "commit" in manifest["git"]
     with pytest.raises(SystemExit, match="--member"):
         member_ab.plan(board, "p2point", "search", {}, 2)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.attacks.ensemble import MEMBERS, EnsembleAttack, column
+from icpbench.attacks.ensemble import MEMBERS, VALLEY_LINE_STEPS, EnsembleAttack, column
 from icpbench.attacks.spoof import SpoofAttack, misfit, spoofed_displacement
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.attacks.valley import ValleyAttack
@@ -123,7 +123,8 @@ def test_the_ensembles_spoof_and_valley_members_give_their_own_rows(scene_pair):
     o_ens, o_spoof, o_valley = (QueryOracle.prepared(target, batch) for _ in range(3))
     out = ens.run(batch, LAM, surrogate=None, generator=0, oracle=o_ens)
     spoof = SpoofAttack(queries=6).run(batch, LAM, generator=0, oracle=o_spoof)
-    valley = ValleyAttack(queries=4).run(batch, LAM, generator=0, oracle=o_valley)
+    valley = ValleyAttack(queries=4, line_steps=VALLEY_LINE_STEPS).run(batch, LAM, generator=0,
+                                                                      oracle=o_valley)
     np.testing.assert_allclose(out.extra[column("spoof")].numpy(),
                                spoof.extra["spoof_err"].numpy(), rtol=1e-9)
     np.testing.assert_allclose(out.extra[column("valley")].numpy(),

@@ -330,8 +330,8 @@ class LeaderboardOptions(Options):
     ensemble_param: Settings = Field(
         {}, description="Ensemble setting KEY=VALUE, repeatable (members, pgd_steps, "
                         "pgd_step_size, sector_iterations, queries, patience, spoof_queries, "
-                        "valley_queries, directions, screen); departs from the standard "
-                        "protocol.")
+                        "valley_queries, valley_line_steps, directions, screen); departs from "
+                        "the standard protocol.")
     seed: Seed | None = Field(
         None, description="Attack seed; departs from the standard protocol. [default: 0]")
     executor: Executor = Field("local", description="local, processes or ray (see `icpbench "
