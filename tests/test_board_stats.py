@@ -7,7 +7,12 @@ import pandas as pd
 import pytest
 
 from icpbench.core.errors import InputError
-from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement, kendall_interval
+from icpbench.harness.board_stats import (
+    bootstrap_ranks,
+    kendall_agreement,
+    kendall_interval,
+    paired_ratios,
+)
 
 
 def test_paired_resampling_keeps_a_uniformly_worse_variant_behind():
@@ -69,3 +74,26 @@ def test_kendall_interval_is_sure_of_separated_rankings_and_wide_for_ties():
         kendall_interval(far.iloc[:0], other)
     with pytest.raises(InputError):
         kendall_interval(far, other, n_boot=0)
+
+
+def test_paired_ratios_pair_scans_and_their_interval_holds_the_ratio():
+    rng = np.random.default_rng(3)
+    scans = [f"s{i}" for i in range(40)]
+    b = pd.DataFrame({"x": rng.gamma(2.0, 2.0, 40), "y": rng.gamma(2.0, 1.0, 40)}, index=scans)
+    # a: x 10% larger on every scan (a sure ratio of 1.1), y with heavy noise; listed in
+    # another order, with two scans b lacks and one variant b lacks
+    a = pd.DataFrame({"y": b.y * rng.uniform(0.2, 1.8, 40), "x": 1.1 * b.x, "z": 1.0},
+                     index=scans)[::-1]
+    a = pd.concat([a, pd.DataFrame({"x": [99.0, 99.0], "y": 1.0, "z": 1.0}, index=["n1", "n2"])])
+    r = paired_ratios(a, b, n_boot=500)
+    assert list(r.index) == ["y", "x"] and (r.scans == 40).all()
+    np.testing.assert_allclose(r.loc["x", ["ratio", "ratio_lo", "ratio_hi"]], 1.1, rtol=1e-12)
+    assert r.loc["x", "larger"] == 1.0 and r.loc["x", "smaller"] == 0.0
+    y = r.loc["y"]
+    assert np.isclose(y.ratio, a.loc[scans, "y"].mean() / b.y.mean())
+    assert y.ratio_lo < y.ratio < y.ratio_hi and y.ratio_hi - y.ratio_lo > 0.1
+    assert np.isclose(y.larger + y.smaller, 1.0)
+    # boards of different scans (two domains) pair nothing
+    assert paired_ratios(a.rename(index=lambda s: "o" + s), b).empty
+    with pytest.raises(InputError, match="n_boot"):
+        paired_ratios(a, b, n_boot=0)

@@ -89,6 +89,12 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
                   r"each board's scans resampled\) over 3 variants", md)
     assert m is not None, md
     assert -1.0 <= float(m[1]) <= float(m[2]) == 1.0
+    # the same scans: variant by variant, each ratio 1 with an interval of width 0
+    cmp = pd.read_csv(out / "comparison.csv").set_index("variant")
+    assert set(cmp.index) == set(board.variant)
+    np.testing.assert_allclose(cmp[["ratio", "ratio_lo", "ratio_hi"]].to_numpy(), 1.0)
+    assert (cmp.larger == 0).all() and (cmp.smaller == 0).all() and (cmp.scans == 2).all()
+    assert "| ratio (95% CI) |" in md and "| 1.000 (1.00-1.00) | 0% | 0% |" in md
     # a board copied without its runs still gives tau, and says why it has no interval
     bare = tmp_path / "bare"
     bare.mkdir()
@@ -98,6 +104,7 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     assert res.exit_code == 0, res.output
     md = (out / "leaderboard.md").read_text()
     assert "Kendall's tau = 1.00 (no interval: " in md and "is missing" in md
+    assert "ratio (95% CI)" not in md  # no runs there: no scans to pair
     # a board of some standard variants says which ones it leaves out, in the text and manifest
     assert "8 of the 11 standard ones are not on it: `p2plane (no kernel)`" in md
     manifest = json.loads((out / "manifest.json").read_text())

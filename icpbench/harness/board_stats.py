@@ -11,7 +11,9 @@ quantify the authority of an empirical ranking", Ann. Statist. 2009). Rank 1 is 
 (smallest mean worst case). Two boards (e.g. two data domains) agree as much as Kendall's tau of
 their rankings over the variants both hold says (Kendall, "A new measure of rank correlation",
 Biometrika 1938); the interval of tau resamples each board's own scans, independently (two domains
-share no scan), and ranks the resampled means.
+share no scan), and ranks the resampled means. Two boards of the *same* scans (one domain under two
+protocol versions) compare variant by variant: the ratio of their mean worst cases with a paired
+interval, the scans resampled together for both (:func:`paired_ratios`).
 
 Units: errors in metres.
 """
@@ -127,3 +129,47 @@ def kendall_interval(a: pd.DataFrame, b: pd.DataFrame, n_boot: int = N_BOOT, see
         return float("nan"), float("nan")
     lo, hi = np.percentile(taus, [2.5, 97.5])
     return float(lo), float(hi)
+
+
+def paired_ratios(a: pd.DataFrame, b: pd.DataFrame, n_boot: int = N_BOOT, seed: int = 0
+                  ) -> pd.DataFrame:
+    """Per variant, the ratio of board ``a``'s mean worst case to board ``b``'s over the scans both
+    hold, with a paired bootstrap 95 % percentile interval (each resample draws the common scans
+    with replacement and uses the same draw for both boards, whose errors are paired by scan).
+
+    Args:
+        a, b: scans x variants worst-case errors (metres; index: scan ids; NaN: no finite error,
+            left out of that board's mean).
+        n_boot: resamples.
+        seed: seed of the resampling.
+
+    Returns:
+        One row per variant both boards hold, in ``a``'s order: ``scans`` (common scans),
+        ``mean_a``, ``mean_b`` (metres), ``ratio``, ``ratio_lo``, ``ratio_hi``, ``larger``
+        (share of the common scans where ``a`` is larger by more than 1 mm), ``smaller``. Empty
+        when the boards share no scan or no variant.
+
+    Raises:
+        InputError: ``n_boot`` < 1.
+    """
+    if int(n_boot) < 1:
+        raise InputError(f"bootstrap of a ratio: n_boot must be >= 1, got {n_boot}")
+    cols = ["scans", "mean_a", "mean_b", "ratio", "ratio_lo", "ratio_hi", "larger", "smaller"]
+    scans = a.index.intersection(b.index)
+    variants = [v for v in a.columns if v in b.columns]
+    if len(scans) == 0 or not variants:
+        return pd.DataFrame(columns=cols, dtype=float)
+    X = a.loc[scans, variants].to_numpy(dtype=float)
+    Y = b.loc[scans, variants].to_numpy(dtype=float)
+    idx = np.random.default_rng(seed).integers(0, len(scans), size=(int(n_boot), len(scans)))
+    with warnings.catch_warnings():  # an all-NaN (resampled) column has a NaN mean
+        warnings.simplefilter("ignore", category=RuntimeWarning)
+        mx, my = np.nanmean(X, axis=0), np.nanmean(Y, axis=0)
+        boot = np.nanmean(X[idx], axis=1) / np.nanmean(Y[idx], axis=1)  # (n_boot, V)
+        lo, hi = np.nanpercentile(boot, [2.5, 97.5], axis=0)
+    both = np.isfinite(X) & np.isfinite(Y)
+    return pd.DataFrame({
+        "scans": float(len(scans)), "mean_a": mx, "mean_b": my, "ratio": mx / my,
+        "ratio_lo": lo, "ratio_hi": hi,
+        "larger": (both & (X > Y + 1e-3)).sum(axis=0) / len(scans),
+        "smaller": (both & (X < Y - 1e-3)).sum(axis=0) / len(scans)}, index=variants)[cols]

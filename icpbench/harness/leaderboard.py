@@ -48,7 +48,12 @@ from icpbench.attacks.ensemble import MEMBERS, column, seconds_column
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
-from icpbench.harness.board_stats import bootstrap_ranks, kendall_agreement, kendall_interval
+from icpbench.harness.board_stats import (
+    bootstrap_ranks,
+    kendall_agreement,
+    kendall_interval,
+    paired_ratios,
+)
 from icpbench.harness.outputs import claim, save_figure, write_csv, write_file, write_json
 from icpbench.harness.protocol import (
     STANDARD_DOMAINS,
@@ -782,6 +787,38 @@ def agreement_line(board: pd.DataFrame, other: Path) -> str:
             "order).")
 
 
+def paired_comparison(board: pd.DataFrame, other: Path) -> pd.DataFrame:
+    """Each variant's mean worst case beside the board in folder ``other`` over the scans both
+    hold (one domain, e.g. under two protocol versions), with the ratio and its paired bootstrap
+    interval (:func:`~icpbench.harness.board_stats.paired_ratios`, ranking budgets); empty when
+    the boards share no scan, this board kept no per-scan errors or ``other``'s runs are gone."""
+    mine = _ranking_scans(board)
+    try:
+        theirs = board_scans(other)
+    except InputError:
+        theirs = None
+    if mine is None or theirs is None:
+        return paired_ratios(pd.DataFrame(), pd.DataFrame())
+    return paired_ratios(mine, theirs)
+
+
+def comparison_markdown(ratios: pd.DataFrame, other: Path) -> str:
+    """The Markdown table of :func:`paired_comparison` (``""`` when it is empty)."""
+    if ratios.empty:
+        return ""
+    lines = [f"Against `{other}` on the scans both boards hold: the mean worst case of each, "
+             "their ratio with a 95% bootstrap interval (the scans resampled together for both "
+             "boards), and the share of scans where this board's worst case is larger / smaller "
+             "by more than 1 mm:", "",
+             f"| variant | scans | this board [m] | `{other.name}` [m] | ratio (95% CI) | larger "
+             "| smaller |", "|---|---|---|---|---|---|---|"]
+    for v, x in ratios.iterrows():
+        lines.append(f"| {v} | {int(x.scans)} | {_fmt(x.mean_a)} | {_fmt(x.mean_b)} | "
+                     f"{_fmt(x.ratio, 3)} ({_fmt(x.ratio_lo)}-{_fmt(x.ratio_hi)}) | "
+                     f"{x.larger:.0%} | {x.smaller:.0%} |")
+    return "\n".join(lines) + "\n"
+
+
 def _ranking_scans(board: pd.DataFrame) -> pd.DataFrame | None:
     """Scans x variants worst-case errors (metres) of ``board`` at its ranking (middle) budget, as
     :func:`summarise` kept them; None if it kept none."""
@@ -822,7 +859,8 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
     """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` (``skipped``: the
     variants not ranked and why; ``extra_not_run``) into ``out``; with
     ``compare_with`` (another board's folder), the Markdown states the agreement of the two
-    rankings (:func:`agreement_line`)."""
+    rankings (:func:`agreement_line`) and, where the boards hold the same scans, compares them
+    variant by variant (:func:`paired_comparison`, also written to ``comparison.csv``)."""
     unused = [f"won_{m}" for m in MEMBERS if m not in ran_members(board)]
     write_csv(out / "leaderboard.csv", board.drop(
         columns=unused + [c for c in board if c.startswith("ran_")]), index=False,
@@ -830,6 +868,10 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
     md = board_markdown(board, cfg, skipped)
     if compare_with is not None:
         md += "\n" + agreement_line(board, Path(compare_with)) + "\n"
+        ratios = paired_comparison(board, Path(compare_with))
+        if not ratios.empty:  # the same scans: variant by variant
+            md += "\n" + comparison_markdown(ratios, Path(compare_with))
+            write_csv(out / "comparison.csv", ratios.rename_axis("variant"), float_format="%.6g")
     write_file(out / "leaderboard.md", md)
     board_figure(board, out / "leaderboard.png")
     write_json(out / "manifest.json", {
