@@ -85,7 +85,7 @@ from icpbench.targets.oracle import QueryOracle
 
 #: Query budgets of ``spoof`` and ``valley`` in the ensemble, the headings each queries first and
 #: the headings it screens by the map's misfit before (docs/methods.md, "The standard ensemble").
-SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 12, 8, 0
+SPOOF_QUERIES, VALLEY_QUERIES, DIRECTIONS, SCREEN = 24, 16, 8, 0
 #: Steps of the line to the wrong pose on which ``valley`` models the target's cost in the ensemble
 #: (:class:`~icpbench.attacks.valley.ValleyAttack` ``line_steps``; its own default is finer).
 VALLEY_LINE_STEPS = 4

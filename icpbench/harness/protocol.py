@@ -27,8 +27,8 @@ from icpbench.core.errors import InputError
 
 #: Version of the standard protocol. Raise it whenever a change of the code or of the settings
 #: below changes what a standard board computes (e.g. the ensemble's default members). Version 2
-#: (2026-11-27): ``sector`` joins the default members, ``valley`` runs 12 queries (was 16) and models
-#: the target's cost on 4 steps of its line (was 8).
+#: (2026-11-27): ``sector`` joins the default members and ``valley`` models the target's cost on 4
+#: steps of its line (was 8).
 STANDARD_VERSION = 2
 
 
