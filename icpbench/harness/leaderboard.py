@@ -751,9 +751,12 @@ def board_figure(board: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
-def agreement_line(board: pd.DataFrame, other: Path) -> str:
+def agreement_line(board: pd.DataFrame, other: Path, other_scans: pd.DataFrame | None,
+                   why: str = "") -> str:
     """One line: Kendall's tau between this board's ranking and the board in folder ``other``
-    (mean amplification at each board's middle budget, over the variants both rank).
+    (mean amplification at each board's middle budget, over the variants both rank), with its
+    bootstrap interval from ``other_scans`` (:func:`board_scans` of ``other``; None: no interval,
+    ``why`` says why).
 
     Raises:
         InputError: ``other`` holds no board (``leaderboard.csv``).
@@ -771,11 +774,7 @@ def agreement_line(board: pd.DataFrame, other: Path) -> str:
         return b[np.isclose(b.budget, mid)].set_index("variant").amplification.to_dict()
 
     tau, p, n = kendall_agreement(scores(board), scores(theirs))
-    mine, why = _ranking_scans(board), None
-    try:
-        other_scans = board_scans(other)
-    except InputError as exc:
-        other_scans, why = None, str(exc)
+    mine = _ranking_scans(board)
     if mine is not None and other_scans is not None:
         lo, hi = kendall_interval(mine, other_scans)
         spread = (f" (95% bootstrap interval {_fmt(lo)} to {_fmt(hi)}, each board's scans "
@@ -787,23 +786,9 @@ def agreement_line(board: pd.DataFrame, other: Path) -> str:
             "order).")
 
 
-def paired_comparison(board: pd.DataFrame, other: Path) -> pd.DataFrame:
-    """Each variant's mean worst case beside the board in folder ``other`` over the scans both
-    hold (one domain, e.g. under two protocol versions), with the ratio and its paired bootstrap
-    interval (:func:`~icpbench.harness.board_stats.paired_ratios`, ranking budgets); empty when
-    the boards share no scan, this board kept no per-scan errors or ``other``'s runs are gone."""
-    mine = _ranking_scans(board)
-    try:
-        theirs = board_scans(other)
-    except InputError:
-        theirs = None
-    if mine is None or theirs is None:
-        return paired_ratios(pd.DataFrame(), pd.DataFrame())
-    return paired_ratios(mine, theirs)
-
-
 def comparison_markdown(ratios: pd.DataFrame, other: Path) -> str:
-    """The Markdown table of :func:`paired_comparison` (``""`` when it is empty)."""
+    """The Markdown table of :func:`~icpbench.harness.board_stats.paired_ratios` of this board
+    against the board in ``other`` (``""`` when it is empty)."""
     if ratios.empty:
         return ""
     lines = [f"Against `{other}` on the scans both boards hold: the mean worst case of each, "
@@ -860,17 +845,24 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
     variants not ranked and why; ``extra_not_run``) into ``out``; with
     ``compare_with`` (another board's folder), the Markdown states the agreement of the two
     rankings (:func:`agreement_line`) and, where the boards hold the same scans, compares them
-    variant by variant (:func:`paired_comparison`, also written to ``comparison.csv``)."""
+    variant by variant (:func:`~icpbench.harness.board_stats.paired_ratios`, also written to
+    ``comparison.csv``)."""
     unused = [f"won_{m}" for m in MEMBERS if m not in ran_members(board)]
     write_csv(out / "leaderboard.csv", board.drop(
         columns=unused + [c for c in board if c.startswith("ran_")]), index=False,
         float_format="%.6g")
     md = board_markdown(board, cfg, skipped)
     if compare_with is not None:
-        md += "\n" + agreement_line(board, Path(compare_with)) + "\n"
-        ratios = paired_comparison(board, Path(compare_with))
-        if not ratios.empty:  # the same scans: variant by variant
-            md += "\n" + comparison_markdown(ratios, Path(compare_with))
+        other = Path(compare_with)
+        try:  # its per-scan errors, read once for tau's interval and the paired ratios
+            theirs, why = board_scans(other), ""
+        except InputError as exc:
+            theirs, why = None, str(exc)
+        md += "\n" + agreement_line(board, other, theirs, why) + "\n"
+        mine = _ranking_scans(board)
+        ratios = paired_ratios(mine, theirs) if mine is not None and theirs is not None else None
+        if ratios is not None and not ratios.empty:  # the same scans: variant by variant
+            md += "\n" + comparison_markdown(ratios, other)
             write_csv(out / "comparison.csv", ratios.rename_axis("variant"), float_format="%.6g")
     write_file(out / "leaderboard.md", md)
     board_figure(board, out / "leaderboard.png")
