@@ -111,3 +111,31 @@ def test_validation_route_figure_labels_every_panel(saved, tmp_path):
     # danger percentiles: negated quantities rank their smallest value most dangerous
     assert list(danger_percentile(np.array([1.0, 3.0, 2.0]), -1)) == pytest.approx([1, 1 / 3, 2 / 3])
     assert danger_percentile(np.array([1.0, np.inf]), 1)[1] == 1.0
+
+
+def _board(amp: dict[str, float], half_width: float, budget: float = 1.0) -> pd.DataFrame:
+    """A board of one budget: each variant's mean worst case (metres) with a symmetric interval."""
+    worst = pd.Series(amp) * budget
+    return pd.DataFrame({"variant": list(amp), "budget": budget, "worst_mean": worst.values,
+                         "worst_lo": worst.values - half_width, "worst_hi": worst.values + half_width,
+                         "amplification": list(amp.values())})
+
+
+def test_board_figures_draw_intervals_and_two_domains(saved, tmp_path):
+    from icpbench.harness.board_figures import _interval, board_figure, domain_figure
+
+    town = _board({"kiss-icp": 2.3, "p2point": 2.6, "gicp": 18.0}, 0.2)
+    unseen = _board({"kiss-icp": 2.4, "gicp": 38.0, "p2point": 3.4, "new": 5.0}, 1.0, budget=2.0)
+    # the bars' half widths in units of lambda: 1 m / 2 m either side on the 2 m board
+    np.testing.assert_allclose(_interval(unseen), 0.5)
+    np.testing.assert_allclose(_interval(town.drop(columns=["worst_lo", "worst_hi"])), 0.0)
+    board_figure(unseen, tmp_path / "board.png", 1.5)
+    # only the three variants both boards rank are drawn; fewer than two: nothing is written
+    assert domain_figure(unseen, town, tmp_path / "domains.png", label="unseen",
+                         other_label="town", title="tau") == 3
+    assert domain_figure(unseen, town.iloc[:1], tmp_path / "none.png", label="unseen",
+                         other_label="town", title="tau") == 1
+    assert not (tmp_path / "none.png").exists()
+    assert (tmp_path / "board.png").stat().st_size > 10_000
+    assert (tmp_path / "domains.png").stat().st_size > 10_000
+    assert saved == [[], []]

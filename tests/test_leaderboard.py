@@ -89,6 +89,7 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
                   r"each board's scans resampled\) over 3 variants", md)
     assert m is not None, md
     assert -1.0 <= float(m[1]) <= float(m[2]) == 1.0
+    assert (out / "comparison.png").stat().st_size > 10_000  # the two boards against each other
     # the same scans: variant by variant, each ratio 1 with an interval of width 0
     cmp = pd.read_csv(out / "comparison.csv").set_index("variant")
     assert set(cmp.index) == set(board.variant)

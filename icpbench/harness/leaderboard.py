@@ -48,13 +48,14 @@ from icpbench.attacks.ensemble import MEMBERS, column, seconds_column
 from icpbench.attacks.sector_adaptive import score
 from icpbench.core import registry
 from icpbench.core.errors import InputError
+from icpbench.harness.board_figures import board_figure, domain_figure, ranking_rows
 from icpbench.harness.board_stats import (
     bootstrap_ranks,
     kendall_agreement,
     kendall_interval,
     paired_ratios,
 )
-from icpbench.harness.outputs import claim, save_figure, write_csv, write_file, write_json
+from icpbench.harness.outputs import claim, write_csv, write_file, write_json
 from icpbench.harness.protocol import (
     STANDARD_DOMAINS,
     Protocol,
@@ -74,6 +75,9 @@ from icpbench.targets.self_surrogate import self_surrogate
 
 #: The row column of a run with monitors that says whether any fired.
 _ALARM = "extra.monitor_alarm.any"
+
+#: The figure of this board against the one it is compared with (``--compare-with``).
+COMPARISON_FIGURE = "comparison.png"
 
 #: A scan counts as "held" when its worst-case error stays within this multiple of lambda.
 SAFE_AMPLIFICATION = 1.5
@@ -722,35 +726,6 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
     return "\n".join(lines) + "\n"
 
 
-def board_figure(board: pd.DataFrame, path: Path) -> None:
-    """Grouped horizontal bars of the mean amplification per variant and budget (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    budgets = sorted(board.budget.unique())
-    order = list(dict.fromkeys(board.variant))
-    fig, ax = plt.subplots(figsize=(8, 0.45 * len(order) * len(budgets) ** 0.5 + 1.6))
-    h = 0.8 / len(budgets)
-    y = np.arange(len(order))
-    for j, lam in enumerate(budgets):
-        r = board[np.isclose(board.budget, lam)].set_index("variant").reindex(order)
-        ax.barh(y + (j - (len(budgets) - 1) / 2) * h, r.amplification.fillna(0), height=h,
-                label=f"λ = {lam:g} m")
-    ax.axvline(1.0, color="k", ls="--", lw=1)
-    ax.text(1.0, -0.9, " rigid translation", fontsize=8, va="center")
-    ax.axvline(SAFE_AMPLIFICATION, color="grey", ls=":", lw=1)
-    ax.set_yticks(y, order)
-    ax.invert_yaxis()
-    ax.set_xlabel("worst-case error / λ (mean over scans; lower is more robust)")
-    ax.set_title("ICP variants under the attack ensemble (most robust on top)")
-    ax.legend(loc="lower right", fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, path, dpi=130)
-    plt.close(fig)
-
-
 def agreement_line(board: pd.DataFrame, other: Path, other_scans: pd.DataFrame | None,
                    why: str = "") -> str:
     """One line: Kendall's tau between this board's ranking and the board in folder ``other``
@@ -768,12 +743,8 @@ def agreement_line(board: pd.DataFrame, other: Path, other_scans: pd.DataFrame |
     manifest = read_manifest(other) or {}
     domain = (manifest.get("protocol") or {}).get("domain", "unknown")
 
-    def scores(b: pd.DataFrame) -> dict[str, float]:
-        budgets = sorted(b.budget.unique())
-        mid = budgets[len(budgets) // 2]
-        return b[np.isclose(b.budget, mid)].set_index("variant").amplification.to_dict()
-
-    tau, p, n = kendall_agreement(scores(board), scores(theirs))
+    tau, p, n = kendall_agreement(ranking_rows(board).amplification.to_dict(),
+                                  ranking_rows(theirs).amplification.to_dict())
     mine = _ranking_scans(board)
     if mine is not None and other_scans is not None:
         lo, hi = kendall_interval(mine, other_scans)
@@ -839,12 +810,26 @@ def board_scans(folder: Path) -> pd.DataFrame:
     return scans
 
 
+def _comparison_figure(board: pd.DataFrame, other: Path, cfg: LeaderboardConfig, path: Path) -> None:
+    """:func:`~icpbench.harness.board_figures.domain_figure` of this board against the board in
+    ``other`` (already checked to exist by :func:`agreement_line`), named by their domains."""
+    theirs = pd.read_csv(other / "leaderboard.csv")
+    domain = ((read_manifest(other) or {}).get("protocol") or {}).get("domain", str(other))
+    tau, _, n = kendall_agreement(ranking_rows(board).amplification.to_dict(),
+                                  ranking_rows(theirs).amplification.to_dict())
+    domain_figure(board, theirs, path, label=f"this board ({cfg.protocol().domain})",
+                  other_label=f"`{other}` ({domain})",
+                  title=f"The same variants on two boards: Kendall's tau = {_fmt(tau)} over {n}")
+
+
 def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
                 skipped: dict[str, str], compare_with: str | Path | None = None) -> None:
     """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` (``skipped``: the
     variants not ranked and why; ``extra_not_run``) into ``out``; with
     ``compare_with`` (another board's folder), the Markdown states the agreement of the two
-    rankings (:func:`agreement_line`) and, where the boards hold the same scans, compares them
+    rankings (:func:`agreement_line`), ``comparison.png`` draws the variants of both against
+    each other (:func:`~icpbench.harness.board_figures.domain_figure`) and, where the boards hold
+    the same scans, compares them
     variant by variant (:func:`~icpbench.harness.board_stats.paired_ratios`, also written to
     ``comparison.csv``)."""
     unused = [f"won_{m}" for m in MEMBERS if m not in ran_members(board)]
@@ -852,6 +837,7 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         columns=unused + [c for c in board if c.startswith("ran_")]), index=False,
         float_format="%.6g")
     md = board_markdown(board, cfg, skipped)
+    (out / COMPARISON_FIGURE).unlink(missing_ok=True)  # a stale figure of an earlier comparison
     if compare_with is not None:
         other = Path(compare_with)
         try:  # its per-scan errors, read once for tau's interval and the paired ratios
@@ -859,13 +845,14 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         except InputError as exc:
             theirs, why = None, str(exc)
         md += "\n" + agreement_line(board, other, theirs, why) + "\n"
+        _comparison_figure(board, other, cfg, out / COMPARISON_FIGURE)
         mine = _ranking_scans(board)
         ratios = paired_ratios(mine, theirs) if mine is not None and theirs is not None else None
         if ratios is not None and not ratios.empty:  # the same scans: variant by variant
             md += "\n" + comparison_markdown(ratios, other)
             write_csv(out / "comparison.csv", ratios.rename_axis("variant"), float_format="%.6g")
     write_file(out / "leaderboard.md", md)
-    board_figure(board, out / "leaderboard.png")
+    board_figure(board, out / "leaderboard.png", SAFE_AMPLIFICATION)
     write_json(out / "manifest.json", {
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
