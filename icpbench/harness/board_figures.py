@@ -66,6 +66,18 @@ def board_figure(board: pd.DataFrame, path: Path, safe_amplification: float) -> 
     plt.close(fig)
 
 
+def _label_heights(y: pd.Series, lo: float, hi: float) -> dict[str, float]:
+    """Heights of the points' labels on a log axis from ``lo`` to ``hi``: each at its point,
+    moved up just enough to keep 3% of the axis between neighbouring labels."""
+    gap = 0.03 * np.log10(hi / lo)
+    out: dict[str, float] = {}
+    last = -np.inf
+    for v, val in y.sort_values().items():
+        last = max(np.log10(val), last + gap)
+        out[str(v)] = float(10**last)
+    return out
+
+
 def ranking_rows(board: pd.DataFrame) -> pd.DataFrame:
     """The rows of ``board`` at its ranking (middle) budget, indexed by variant."""
     budgets = sorted(board.budget.unique())
@@ -95,6 +107,7 @@ def domain_figure(board: pd.DataFrame, other: pd.DataFrame, path: Path, *, label
     if len(common) < 2:
         return len(common)
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -103,13 +116,18 @@ def domain_figure(board: pd.DataFrame, other: pd.DataFrame, path: Path, *, label
     fig, ax = plt.subplots(figsize=(6.5, 6))
     ax.errorbar(b.amplification, a.amplification, xerr=_interval(b), yerr=_interval(a), fmt="o",
                 ms=5, capsize=2, lw=1)
-    for v in common:
-        ax.annotate(v, (b.amplification[v], a.amplification[v]), textcoords="offset points",
-                    xytext=(5, 4), fontsize=7)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
     lo = 0.8 * min(a.amplification.min(), b.amplification.min())
     hi = 1.25 * max(a.amplification.max(), b.amplification.max())
+    for v, y in _label_heights(a.amplification, lo, hi).items():
+        ax.annotate(v, (b.amplification[v], a.amplification[v]), xytext=(b.amplification[v] * 1.1,
+                    y), fontsize=7, va="center", arrowprops={"arrowstyle": "-", "lw": 0.5,
+                                                              "color": "grey"})
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.plot([lo, hi], [lo, hi], color="grey", ls=":", lw=1)
     ax.set_xlim(lo, hi)
     ax.set_ylim(lo, hi)

@@ -814,11 +814,11 @@ def _comparison_figure(board: pd.DataFrame, other: Path, cfg: LeaderboardConfig,
     """:func:`~icpbench.harness.board_figures.domain_figure` of this board against the board in
     ``other`` (already checked to exist by :func:`agreement_line`), named by their domains."""
     theirs = pd.read_csv(other / "leaderboard.csv")
-    domain = ((read_manifest(other) or {}).get("protocol") or {}).get("domain", str(other))
+    domain = ((read_manifest(other) or {}).get("protocol") or {}).get("domain")
     tau, _, n = kendall_agreement(ranking_rows(board).amplification.to_dict(),
                                   ranking_rows(theirs).amplification.to_dict())
     domain_figure(board, theirs, path, label=f"this board ({cfg.protocol().domain})",
-                  other_label=f"`{other}` ({domain})",
+                  other_label=f"`{other}`" + (f" ({domain})" if domain else ""),
                   title=f"The same variants on two boards: Kendall's tau = {_fmt(tau)} over {n}")
 
 
