@@ -263,6 +263,7 @@ def run(
         help="torch threads (1 is fastest on small CPUs). [default: 1]")] = None,
     reference: Annotated[str, _opt(RC, "reference")] = "generator",
     out: Annotated[str, _opt(RC, "out")] = "runs/latest",
+    redo: Annotated[str, _opt(RC, "redo")] = "",
     attack_param: Annotated[list[str] | None, typer.Option(
         help="Attack setting NAME.KEY=VALUE, repeatable (e.g. generator.checkpoint=gen.pt).")]
     = None,
@@ -322,7 +323,7 @@ def run(
         from icpbench.harness.runner import RunConfig
         from icpbench.harness.runner import run as run_grid
 
-        own = RC.parse({"out": out, "reference": reference})
+        own = RC.parse({"out": out, "reference": reference, "redo": redo})
         out_dir = Path(own.out)
         base = RunConfig.from_file(config) if config is not None else RunConfig()
         given: dict[str, object] = {  # list fields as the flag's text: RunOptions reads them
@@ -351,7 +352,7 @@ def run(
         _warn_plugin_modules()
         cfg = base.validate()
         own.check_reference(cfg.attacks)
-        run_grid(cfg, out_dir, progress=not quiet)
+        run_grid(cfg, out_dir, progress=not quiet, redo=_names(own.redo))
         df, corrupted = split_rows(load_results(out_dir))
         for t in cfg.targets:
             if not df.empty:
@@ -641,6 +642,11 @@ def danger_map(
         _user_error(exc)
 
 
+def _names(text: str) -> list[str]:
+    """The names of a comma-separated option (``--redo``), blanks dropped."""
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
 @app.command("validate-map")
 def validate_map(
     dataset: Annotated[str, _opt(VM, "dataset")] = "lidar-sim",
@@ -658,6 +664,7 @@ def validate_map(
     dataset_param: Annotated[list[str] | None, _opt(VM, "dataset_param")] = None,
     executor: Annotated[str, _opt(VM, "executor")] = "local",
     out: Annotated[str, _opt(VM, "out")] = "runs/danger-validation",
+    redo: Annotated[str, _opt(VM, "redo")] = "",
     quiet: Annotated[bool, _opt(VM, "quiet", "--quiet")] = False,
 ) -> None:
     """Do danger maps predict real trouble? Worst cases and cheap predictors against the errors of
@@ -673,7 +680,7 @@ def validate_map(
                           bootstrap=bootstrap, route=route,
                           attack_param=_nested(attack_param, "--attack-param"),
                           dataset_param=_flat(dataset_param, "--dataset-param"),
-                          executor=executor, out=out, quiet=quiet))
+                          executor=executor, out=out, redo=redo, quiet=quiet))
         out_dir = Path(o.out)
         settings = ValidationSettings(
             dataset=o.dataset, split=o.split, samples=None if o.samples == 0 else o.samples,
@@ -682,7 +689,8 @@ def validate_map(
             headline_severity=o.headline_severity, n_boot=o.bootstrap, executor=o.executor,
             attack_params=o.attack_param)
         command = "icpbench " + " ".join(sys.argv[1:]) if sys.argv[1:] else "icpbench validate-map"
-        summary = validate(settings, out_dir, route=route, command=command, progress=not quiet)
+        summary = validate(settings, out_dir, route=route, command=command, progress=not quiet,
+                           redo=_names(o.redo))
         block = summary["by_severity"][str(headline_severity)]
         typer.echo(f"{summary['route']}: {summary['places']} places, {block['failures']} fail at "
                    f"severity {headline_severity} (> {fail_m:g} m)")

@@ -12,6 +12,7 @@
 #   ATTACKS=generator,sector-iter  (add an attack and re-run: only its rows are computed)
 #   SEVERITIES=1,2,3,4,5  OUT=results/danger-validation  EXECUTOR=local
 #   ROUTES="test-route unseen-town"  (either alone to run one)
+#   REDO=ensemble  (attacks whose stored rows are computed again, e.g. after their defaults changed)
 # Cost on 2 cores (local executor, one process): about 10 min for the test route; the unseen town
 # adds generating its scans with the 64-beam sensor (about 2 s per scan) to the same work.
 # A quick check: SAMPLES=2 SEVERITIES=5 OUT=/tmp/dv bash scripts/danger_validation.sh
@@ -23,6 +24,7 @@ SEVERITIES=${SEVERITIES:-1,2,3,4,5}
 OUT=${OUT:-results/danger-validation}
 EXECUTOR=${EXECUTOR:-local}
 ROUTES=${ROUTES:-test-route unseen-town}
+REDO=${REDO:-}
 for route in $ROUTES; do
   case $route in
     test-route) params=() ;;
@@ -32,6 +34,7 @@ for route in $ROUTES; do
   start=$(date +%s)
   icpbench validate-map --dataset lidar-sim --split test --samples "$SAMPLES" "${params[@]}" \
     --attacks "$ATTACKS" --budget 1 --corruptions all --severities "$SEVERITIES" \
-    --fail-m 0.5 --headline-severity 3 --executor "$EXECUTOR" --route "$route" --out "$OUT/$route"
+    --fail-m 0.5 --headline-severity 3 --executor "$EXECUTOR" --route "$route" --redo "$REDO" \
+    --out "$OUT/$route"
   echo "$route: $(( $(date +%s) - start )) s"
 done

@@ -228,16 +228,35 @@ def test_a_run_resumed_after_an_attacks_default_changed_is_refused(tmp_path, mon
     patience): the stored rows were made with other settings, so the run is refused."""
     from icpbench.attacks import ensemble
 
+    out = tmp_path / "r"
     args = ["run", "--dataset", "synthetic", "--dataset-param", "n_scan=600", "--dataset-param",
-            "n_map=6000", "--attacks", "ensemble", "--attack-param", "ensemble.members=uniform",
-            "--targets", "p2point", "--budgets", "0.5", "--samples", "1", "--surrogate", "self",
-            "--out", str(tmp_path / "r"), "--quiet"]
+            "n_map=6000", "--attacks", "uniform,ensemble", "--attack-param",
+            "ensemble.members=uniform", "--targets", "p2point", "--budgets", "0.5", "--samples", "2",
+            "--surrogate", "self", "--out", str(out), "--quiet"]
     assert runner.invoke(app, args).exit_code == 0
+    before = load_results(out)
     monkeypatch.setattr(ensemble.EnsembleAttack.__init__, "__kwdefaults__",
                         {**ensemble.EnsembleAttack.__init__.__kwdefaults__, "patience": 3})
     res = runner.invoke(app, args)
     assert res.exit_code != 0
-    assert "ensemble.patience: stored 8, now 3" in res.output
+    assert "ensemble.patience: stored 8, now 3" in res.output and "--redo" in res.output
+    res = runner.invoke(app, [*args, "--redo", "normal"])
+    assert res.exit_code != 0 and "--redo normal: not among the run's attacks" in res.output
+    # --redo: the ensemble's rows are removed and computed again, `uniform`'s are kept as they were
+    res = runner.invoke(app, [*args, "--redo", "ensemble"])
+    assert res.exit_code == 0, res.output
+    after = load_results(out)
+    assert len(after) == len(before) == 4 and (after.attack == "ensemble").sum() == 2
+    key = ["sample_id", "attack"]
+    pd.testing.assert_frame_equal(
+        after[after.attack == "uniform"].sort_values(key).reset_index(drop=True),
+        before[before.attack == "uniform"].sort_values(key).reset_index(drop=True))
+    lines = (out / "results.csv").read_text().splitlines()[1:]
+    assert [ln.split(",")[1] for ln in lines] == ["uniform", "uniform", "ensemble", "ensemble"]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["attacks"]["ensemble"]["patience"] == 3
+    prov = manifest["provenance"]
+    assert [e["rows_from"] for e in prov] == [0, 2] and prov[-1]["redone"] == ["ensemble"]
 
 
 # -- a board ranks only what was measured, and says what was not -------------------------------

@@ -231,8 +231,9 @@ def summary_markdown(summary: dict[str, Any]) -> str:
 
 
 def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = "",
-             command: str = "", progress: bool = True) -> dict[str, Any]:
-    """Run (or resume) the error grid into ``out_dir/run``, compute the predictors and the
+             command: str = "", progress: bool = True, redo: Sequence[str] = ()) -> dict[str, Any]:
+    """Run (or resume) the error grid into ``out_dir/run`` (``redo``: attacks whose stored rows
+    are computed again, :func:`icpbench.harness.runner.run`), compute the predictors and the
     statistics, and write ``places.csv``, ``summary.json``, ``summary.md``, ``route.png`` (for a
     dataset with route positions) and ``manifest.json`` to ``out_dir``. Returns the summary.
 
@@ -248,7 +249,7 @@ def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = 
     cfg = settings.run_config().validate()
     out = claim(out_dir, "validate-map")
     t0 = time.perf_counter()
-    run_grid(cfg, out / "run", progress=progress)
+    run_grid(cfg, out / "run", progress=progress, redo=redo)
     t_grid = time.perf_counter() - t0
     df = load_results(out / "run")
     errors = error_table(df, settings.attacks, cfg.severities, settings.budget_m)

@@ -282,6 +282,9 @@ class RunCommandOptions(Options):
 
     out: OutFolder = Field("runs/latest", description="Results directory (re-run to resume).")
     reference: Name = Field("generator", description="Reference attack of '% Ours is Larger'.")
+    redo: str = Field("", description="Comma-separated attacks of the run whose stored rows "
+                                      "are removed and computed again with their current "
+                                      "settings (e.g. after a default changed).")
 
     def check_reference(self, attacks: list[str] | set[str]) -> None:
         """``reference`` must name a registered attack or one of ``attacks`` (those of the
@@ -416,6 +419,9 @@ class ValidateMapOptions(Options):
     executor: Executor = Field("local", description="local, processes or ray; results do not "
                                                     "depend on it.")
     out: OutFolder = Field("runs/danger-validation", description="Output folder (re-run to resume).")
+    redo: str = Field("", description="Comma-separated attacks of the run whose stored rows "
+                                      "are removed and computed again with their current "
+                                      "settings (e.g. after a default changed).")
     quiet: bool = Field(False, description="No progress output.")
 
 

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from icpbench.core.errors import InputError
-from icpbench.harness.outputs import _json_default
+from icpbench.harness.outputs import _json_default, write_file
 
 RESULTS_FILE = "results.csv"
 MANIFEST_FILE = "manifest.json"
@@ -343,6 +343,50 @@ def count_rows(out_dir: str | Path) -> int:
         return 0
     with open(path, "rb") as f:
         return max(sum(1 for _ in f) - 1, 0)
+
+
+def drop_attack_rows(out_dir: str | Path, attacks: Sequence[str],
+                     provenance: Sequence[Mapping[str, Any]] | None = None,
+                     ) -> list[dict[str, Any]]:
+    """Remove every row of ``attacks`` from the results CSV of ``out_dir`` (rewritten whole or not
+    at all), so that a resumed run computes them again, e.g. after the attack's defaults changed.
+
+    Args:
+        out_dir: a results folder.
+        attacks: attack names whose rows go.
+        provenance: the manifest's ``provenance`` entries, whose ``rows_from`` count data lines.
+
+    Returns:
+        The entries of ``provenance`` with ``rows_from`` moved back by the data lines removed
+        before it, so each entry still starts at the first line its run wrote ([] if None).
+    """
+    path = Path(out_dir) / RESULTS_FILE
+    entries = [dict(e) for e in provenance or []]
+    if not path.is_file() or path.stat().st_size == 0:
+        return entries
+    with open(path, newline="") as f:
+        text = f.read()
+    lines = text.splitlines(keepends=True)
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header = next(reader, None)
+    if header is None or "attack" not in header:
+        raise InputError(f"{path} has no 'attack' column: not a results file")
+    col, drop, start = header.index("attack"), set(attacks), reader.line_num
+    removed: list[int] = []  # 0-based data lines (physical lines after the header)
+    for record in reader:
+        end = reader.line_num
+        if len(record) > col and record[col] in drop:
+            removed += range(start - 1, end - 1)
+        start = end
+    if not removed:
+        return entries
+    gone = set(removed)
+    kept = lines[:1] + [ln for i, ln in enumerate(lines[1:]) if i not in gone]
+    write_file(path, "".join(kept))
+    for e in entries:
+        e["rows_from"] = int(e.get("rows_from") or 0) - sum(1 for i in removed
+                                                           if i < int(e.get("rows_from") or 0))
+    return entries
 
 
 def merge_provenance(old: Mapping[str, Any] | None, new: Mapping[str, Any],

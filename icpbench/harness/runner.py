@@ -50,9 +50,11 @@ from icpbench.harness.results import (
     BAD_INPUT,
     MANIFEST_FILE,
     NOT_RUN,
+    PROVENANCE_FIELDS,
     RESULTS_FILE,
     ResultsStore,
     count_rows,
+    drop_attack_rows,
     lock_results_dir,
     merge_provenance,
     read_manifest,
@@ -459,18 +461,29 @@ class GridWorker:
 
 
 def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
-        on_unit: Callable[[int], None] | None = None) -> ResultsStore:
+        on_unit: Callable[[int], None] | None = None, redo: Sequence[str] = ()) -> ResultsStore:
     """Run (or resume) the grid of ``cfg`` into ``out_dir``; return the results store.
 
     While it runs, ``out_dir`` is locked: a second run with the same ``out_dir`` is refused.
     A sample whose input file is bad is skipped with one warning (logger ``icpbench``) and
     ``error`` rows, unless ``cfg.strict_files``.
 
+    ``redo`` names attacks of ``cfg`` whose stored rows are removed first and computed again with
+    their current settings and files (e.g. after a default changed); every other attack must
+    still match what the folder holds. The manifest's ``provenance`` entry of this run lists them
+    under ``redone``.
+
     Raises:
         InputError: invalid configuration; ``out_dir`` holds a run with another configuration,
-            results without a manifest, or is in use by another run.
+            results without a manifest, or is in use by another run; ``redo`` names an attack the
+            run does not have.
     """
     cfg.validate()
+    unknown = [a for a in redo if a not in cfg.attacks]
+    if unknown:
+        raise InputError(f"--redo {', '.join(unknown)}: not among the run's attacks "
+                         f"({', '.join(cfg.attacks)})")
+    redo = list(dict.fromkeys(redo))
     torch.set_num_threads(cfg.threads)
     out_dir = Path(out_dir)
     if str(out_dir) == "":
@@ -505,19 +518,28 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
             # manifest would label the old rows with the new checkpoint and commit
             old_fp = old.get("fingerprints")
             changed = [n for n, fp in manifest["fingerprints"].items()
-                       if fp and (old_fp is None or old_fp.get(n) != fp)]
+                       if fp and n not in redo and (old_fp is None or old_fp.get(n) != fp)]
             if changed:
                 raise InputError(
                     f"{out_dir} holds results made with other files for attack(s) "
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
-            diff = settings_differences(old.get("attacks"),
-                                        {n: a.settings() for n, a in worker.attacks.items()})
+            kept = {n: v for n, v in (old.get("attacks") or {}).items() if n not in redo}
+            diff = settings_differences(
+                kept or None, {n: a.settings() for n, a in worker.attacks.items() if n not in redo})
             if diff:
                 raise InputError(
                     f"{out_dir} holds results of attacks with other settings ({'; '.join(diff)}), "
-                    "e.g. made before a default changed; use a new --out")
+                    "e.g. made before a default changed; use a new --out, or --redo ATTACK to "
+                    "compute that attack's rows again")
+            if redo:
+                old = {**old, "provenance": drop_attack_rows(
+                    out_dir, redo, old.get("provenance") or [
+                        {"rows_from": 0, "started": old.get("created"),
+                         **{k: old.get(k) for k in PROVENANCE_FIELDS}}])}
         store = ResultsStore(out_dir)
         manifest.update(merge_provenance(old, manifest, count_rows(out_dir)))
+        if redo:
+            manifest["provenance"][-1]["redone"] = redo
         manifest["finished"] = False
         manifest["targets"] = {n: t.settings() for n, t in worker.targets.items()}
         manifest["surrogate_settings"] = (
