@@ -352,7 +352,7 @@ def run(
         _warn_plugin_modules()
         cfg = base.validate()
         own.check_reference(cfg.attacks)
-        run_grid(cfg, out_dir, progress=not quiet, redo=_names(own.redo))
+        run_grid(cfg, out_dir, progress=not quiet, redo=own.redo)
         df, corrupted = split_rows(load_results(out_dir))
         for t in cfg.targets:
             if not df.empty:
@@ -642,11 +642,6 @@ def danger_map(
         _user_error(exc)
 
 
-def _names(text: str) -> list[str]:
-    """The names of a comma-separated option (``--redo``), blanks dropped."""
-    return [n.strip() for n in text.split(",") if n.strip()]
-
-
 @app.command("validate-map")
 def validate_map(
     dataset: Annotated[str, _opt(VM, "dataset")] = "lidar-sim",
@@ -690,7 +685,7 @@ def validate_map(
             attack_params=o.attack_param)
         command = "icpbench " + " ".join(sys.argv[1:]) if sys.argv[1:] else "icpbench validate-map"
         summary = validate(settings, out_dir, route=route, command=command, progress=not quiet,
-                           redo=_names(o.redo))
+                           redo=o.redo)
         block = summary["by_severity"][str(headline_severity)]
         typer.echo(f"{summary['route']}: {summary['places']} places, {block['failures']} fail at "
                    f"severity {headline_severity} (> {fail_m:g} m)")

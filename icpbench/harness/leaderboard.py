@@ -726,6 +726,13 @@ def board_markdown(board: pd.DataFrame, cfg: LeaderboardConfig, skipped: dict[st
     return "\n".join(lines) + "\n"
 
 
+def _ranking_agreement(board: pd.DataFrame, theirs: pd.DataFrame) -> tuple[float, float, int]:
+    """Kendall's tau (with its p-value and the variants compared) of two boards' rankings: the
+    mean amplification at each board's ranking budget."""
+    return kendall_agreement(ranking_rows(board).amplification.to_dict(),
+                             ranking_rows(theirs).amplification.to_dict())
+
+
 def agreement_line(board: pd.DataFrame, other: Path, other_scans: pd.DataFrame | None,
                    why: str = "") -> str:
     """One line: Kendall's tau between this board's ranking and the board in folder ``other``
@@ -743,8 +750,7 @@ def agreement_line(board: pd.DataFrame, other: Path, other_scans: pd.DataFrame |
     manifest = read_manifest(other) or {}
     domain = (manifest.get("protocol") or {}).get("domain", "unknown")
 
-    tau, p, n = kendall_agreement(ranking_rows(board).amplification.to_dict(),
-                                  ranking_rows(theirs).amplification.to_dict())
+    tau, p, n = _ranking_agreement(board, theirs)
     mine = _ranking_scans(board)
     if mine is not None and other_scans is not None:
         lo, hi = kendall_interval(mine, other_scans)
@@ -815,8 +821,7 @@ def _comparison_figure(board: pd.DataFrame, other: Path, cfg: LeaderboardConfig,
     ``other`` (already checked to exist by :func:`agreement_line`), named by their domains."""
     theirs = pd.read_csv(other / "leaderboard.csv")
     domain = ((read_manifest(other) or {}).get("protocol") or {}).get("domain")
-    tau, _, n = kendall_agreement(ranking_rows(board).amplification.to_dict(),
-                                  ranking_rows(theirs).amplification.to_dict())
+    tau, _, n = _ranking_agreement(board, theirs)
     domain_figure(board, theirs, path, label=f"this board ({cfg.protocol().domain})",
                   other_label=f"`{other}`" + (f" ({domain})" if domain else ""),
                   title=f"The same variants on two boards: Kendall's tau = {_fmt(tau)} over {n}")

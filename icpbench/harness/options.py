@@ -77,6 +77,12 @@ Name = Annotated[str, at.MinLen(1), BeforeValidator(lambda v: v.strip() if isins
 Count = Annotated[int, Field(ge=1, le=COUNT_MAX)]
 Seed = Annotated[int, Field(ge=S.SEED_MIN, le=S.SEED_MAX)]
 Budget = Annotated[float, Field(ge=S.BUDGET_MIN, le=S.BUDGET_MAX, allow_inf_nan=False)]
+#: ``--redo``: attacks of a run whose stored rows are computed again (``icpbench run``,
+#: ``icpbench validate-map``).
+Redo = Annotated[list[Name], BeforeValidator(_comma_names)]
+_REDO = Field([], description="Comma-separated attacks of the run whose stored rows are removed "
+                              "and computed again with their current settings (e.g. after a "
+                              "default changed).")
 
 
 def _folder(v: str) -> str:
@@ -282,9 +288,7 @@ class RunCommandOptions(Options):
 
     out: OutFolder = Field("runs/latest", description="Results directory (re-run to resume).")
     reference: Name = Field("generator", description="Reference attack of '% Ours is Larger'.")
-    redo: str = Field("", description="Comma-separated attacks of the run whose stored rows "
-                                      "are removed and computed again with their current "
-                                      "settings (e.g. after a default changed).")
+    redo: Redo = _REDO
 
     def check_reference(self, attacks: list[str] | set[str]) -> None:
         """``reference`` must name a registered attack or one of ``attacks`` (those of the
@@ -419,9 +423,7 @@ class ValidateMapOptions(Options):
     executor: Executor = Field("local", description="local, processes or ray; results do not "
                                                     "depend on it.")
     out: OutFolder = Field("runs/danger-validation", description="Output folder (re-run to resume).")
-    redo: str = Field("", description="Comma-separated attacks of the run whose stored rows "
-                                      "are removed and computed again with their current "
-                                      "settings (e.g. after a default changed).")
+    redo: Redo = _REDO
     quiet: bool = Field(False, description="No progress output.")
 
 

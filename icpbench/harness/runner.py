@@ -524,8 +524,7 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                     f"{out_dir} holds results made with other files for attack(s) "
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
             kept = {n: v for n, v in (old.get("attacks") or {}).items() if n not in redo}
-            diff = settings_differences(
-                kept or None, {n: a.settings() for n, a in worker.attacks.items() if n not in redo})
+            diff = settings_differences(kept, {n: a.settings() for n, a in worker.attacks.items()})
             if diff:
                 raise InputError(
                     f"{out_dir} holds results of attacks with other settings ({'; '.join(diff)}), "
