@@ -127,3 +127,14 @@ class Target(ABC):
         Default: the target itself when it is differentiable, else None. Black boxes with a
         replica override this (docs/methods.md, "Differentiable replicas of the black boxes")."""
         return self if self.differentiable else None
+
+    def exact_replica(self) -> Target | None:
+        """A target whose registrations equal this one's to rounding (measured, not assumed), so
+        that it may answer an attack's queries in this target's place, or None.
+
+        Only the *queries* of a query attack go to it (:class:`~icpbench.targets.oracle.
+        QueryOracle`, ``answer_with``); every row of a run is still this target's own registration
+        of the attack's output, so a replica that drifted could only make an attack weaker, never
+        a reported error larger. Worth it where the replica is faster than the target (KISS-ICP:
+        docs/performance.md, "Queries answered by an exact replica"). Default None."""
+        return None

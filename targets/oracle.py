@@ -9,6 +9,11 @@ et al., "Square Attack: a query-efficient black-box adversarial attack via rando
 ECCV 2020). Every registration of a sample counts as one query of that sample; the runner records
 the counts per row.
 
+Where the target has an *exact replica* (:meth:`~icpbench.targets.base.Target.exact_replica`: a
+faster implementation measured to register every scan as the target does, to rounding), the oracle
+may let it answer (``answer_with``): the attack sees the same poses sooner, and nothing it reports
+changes, since the runner registers every attack's output with the target itself.
+
 Frames: scans (B, N, 3) in the sensor frame; poses ``T_map_scan`` (4, 4); errors in metres.
 """
 
@@ -34,6 +39,10 @@ class QueryOracle:
         batch: the batch under attack (true poses and initial guesses).
         maps: B maps in the form ``target.register`` takes (prepared handles for a black box, the
             batch's ``MapIndex`` for a differentiable target).
+        answer_with: a differentiable target that registers the queries in ``target``'s place
+            (its :meth:`~icpbench.targets.base.Target.exact_replica`), on the batch's maps; None:
+            the target itself. ``target`` stays the evaluated one: its name, settings and cost
+            model are what attacks read.
     """
 
     #: The oracle reports NaN for candidates that integrity monitors flag (a
@@ -41,10 +50,16 @@ class QueryOracle:
     #: *undetected* error, and the ``ensemble`` adds its monitor-aware members.
     hides_detected: ClassVar[bool] = False
 
-    def __init__(self, target: Target, batch: Batch, maps: Sequence[Any]) -> None:
+    def __init__(self, target: Target, batch: Batch, maps: Sequence[Any],
+                 answer_with: Target | None = None) -> None:
         if len(maps) != len(batch):
             raise InputError(f"oracle: got {len(maps)} maps for a batch of {len(batch)} scans")
+        if answer_with is not None and not answer_with.differentiable:
+            raise InputError(f"oracle: {answer_with.name!r} cannot answer for {target.name!r}: "
+                             "an answering replica registers on the batch's maps, so it must be "
+                             "a differentiable target")
         self.target = target
+        self.answer_with = answer_with
         self.batch = batch
         self.maps = list(maps)
         self.queries = np.zeros(len(batch), dtype=np.int64)
@@ -90,9 +105,11 @@ class QueryOracle:
             raise InputError(f"oracle: scans must have shape ({idx.size}, N, 3), got "
                              f"{tuple(x.shape)}")
         sel = torch.as_tensor(idx)
+        who, maps = ((self.target, self.maps) if self.answer_with is None
+                     else (self.answer_with, self.batch.maps))
         with torch.no_grad():
-            reg = self.target.register(x.to(self.batch.scans.dtype), [self.maps[i] for i in idx],
-                                       self.batch.T_init[sel])
+            reg = who.register(x.to(self.batch.scans.dtype), [maps[i] for i in idx],
+                               self.batch.T_init[sel])
         np.add.at(self.queries, idx, 1)
         T = reg.T.detach().to(torch.float64)
         xi = pose_error(T, self.batch.T_gt[sel].to(torch.float64))

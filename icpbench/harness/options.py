@@ -254,6 +254,9 @@ class RunOptions(Options):
     target_params: PluginSettings = Field({}, description="Per-target settings.")
     executor: Executor = Field("local", description="local, processes or ray.")
     strict_files: bool = Field(False, description="Stop at a bad input file.")
+    replica_queries: bool = Field(
+        True, description="Let a target's exact replica answer the query attacks' queries (the "
+                          "rows stay the target's own registrations).")
     corruptions: Annotated[list[Name], _list("corruptions")] = Field(
         [], description="Corruptions run beside the attacks ('all' or names).")
     severities: Annotated[list[Annotated[int, Field(ge=S.SEVERITY_MIN, le=S.SEVERITY_MAX)]],

@@ -105,6 +105,9 @@ class RunConfig:
             a run may be resumed with another executor.
         strict_files: stop the run at the first sample whose input file is bad, instead of
             skipping it with a warning and ``error`` rows.
+        replica_queries: a target's exact replica (``Target.exact_replica``, e.g. KISS-ICP's)
+            answers the queries of the query attacks in its place; every row is still the
+            target's own registration, so the rows do not depend on it.
         corruptions: realistic corruptions run beside the attacks (``["all"]`` = every one that
             loads; default none), each at every level of ``severities`` (1..5), the severity in the
             budget column (:mod:`icpbench.harness.corruption_units`).
@@ -141,6 +144,7 @@ class RunConfig:
     target_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     executor: str = "local"
     strict_files: bool = False
+    replica_queries: bool = True
     corruptions: list[str] = field(default_factory=list)
     severities: list[int] = field(default_factory=lambda: list(SEVERITIES))
     monitors: list[str] = field(default_factory=list)
@@ -241,7 +245,7 @@ class RunConfig:
 
 #: RunConfig fields that choose how a run is executed, not what it computes (ignored when a resumed
 #: run's configuration is compared with the stored one).
-EXECUTION_FIELDS = ("executor", "strict_files")
+EXECUTION_FIELDS = ("executor", "strict_files", "replica_queries")
 
 
 def _grows(stored: int | None, now: int | None) -> bool:
@@ -409,6 +413,9 @@ class GridWorker:
                         for n in cfg.attacks}
         self.attacks.update(build_corruption_attacks(cfg))
         self.prepared: dict[str, dict[str, Any]] = {t: {} for t in self.targets}
+        #: per target, the exact replica that answers its queries (None: the target itself)
+        self.answerers: dict[str, Target | None] = {
+            n: t.exact_replica() if cfg.replica_queries else None for n, t in self.targets.items()}
         self.set_thresholds(thresholds)
 
     def set_thresholds(self, thresholds: Mapping[str, Mapping[str, float]] | None) -> None:
@@ -450,7 +457,8 @@ class GridWorker:
         for budget, aname in item.units:
             rows = [] if batch is None else _run_unit(
                 batch, self.attacks[aname], self.targets, self.surrogate, self.prepared, budget,
-                item.seed, self.cfg, invariant_cache, self.self_surrogates, self.monitors)
+                item.seed, self.cfg, invariant_cache, self.self_surrogates, self.monitors,
+                self.answerers)
             for tname in self.targets:
                 for r in _base_rows(list(bad), [{}] * len(bad), aname, tname, budget, item.seed,
                                     self.cfg):
@@ -656,7 +664,8 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
               prepared: dict[str, dict[str, Any]], budget: float, seed: int, cfg: RunConfig,
               invariant_cache: dict[tuple[str, str], tuple],
               self_surrogates: Mapping[str, Target | None] | None = None,
-              monitors: Mapping[str, list[Monitor]] | None = None) -> list[dict[str, Any]]:
+              monitors: Mapping[str, list[Monitor]] | None = None,
+              answerers: Mapping[str, Target | None] | None = None) -> list[dict[str, Any]]:
     """Attack one batch and register it with every target; return the rows.
 
     A non-adaptive attack runs once and every target registers its output (transfer). An adaptive
@@ -668,7 +677,9 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
     Each sample's random stream comes from (seed, attack, budget, sample id), so the rows do not
     depend on the batch. An attack that is ``budget_invariant`` is registered once per batch.
     With ``monitors`` (``{target: calibrated monitors}``) every row records their alarms, and with
-    ``cfg.monitor_aware`` a query attack sees a :class:`MonitoredOracle` of its target."""
+    ``cfg.monitor_aware`` a query attack sees a :class:`MonitoredOracle` of its target. Without
+    monitors the oracle's queries go to the target's exact replica where ``answerers`` names one
+    (a monitor reads the target's own registration)."""
     if attack.adaptive(self_surrogates is not None):
         groups = [[t] for t in targets]
     else:
@@ -683,7 +694,8 @@ def _run_unit(batch: Batch, attack: Attack, targets: dict[str, Target], surrogat
             maps = batch.maps if target.differentiable else _prepared(target, names[0], batch,
                                                                       prepared)
             oracle = (MonitoredOracle(target, batch, maps, monitors[names[0]])
-                      if cfg.monitor_aware and monitors else QueryOracle(target, batch, maps))
+                      if cfg.monitor_aware and monitors else
+                      QueryOracle(target, batch, maps, (answerers or {}).get(names[0])))
         t0 = time.perf_counter()
         try:
             out: AttackOutput | None = attack.run(batch, budget, surrogate=sur,
