@@ -72,6 +72,8 @@ class SleepyICP(Target):
         self.calls += 1
         if PHASE == "grid" and self.calls == 2:  # a unit's rows are saved, the next one runs
             reached()
+        if PHASE == "grid-exec" and self.calls == 2:  # the same inside code run by exec()
+            exec("reached()")
         B = scans.shape[0]
         return Registration(T=T_init.detach().double().clone(),
                             converged=torch.ones(B, dtype=torch.bool),
@@ -179,6 +181,7 @@ def _wait_for(mark: Path, proc: subprocess.Popen) -> None:
     ("import", signal.SIGTERM, "local", False),
     ("build", signal.SIGTERM, "local", False),     # the run's targets being built
     ("grid", signal.SIGINT, "local", True),        # one unit's rows saved, the next running
+    ("grid-exec", signal.SIGINT, "local", True),   # CPython's `-m` exit status after exec()
     ("grid", signal.SIGTERM, "local", True),
     ("grid", signal.SIGINT, "processes", True),    # scans in flight in worker processes; the
     ("grid", signal.SIGTERM, "processes", True),   # unit every sample finished is saved
