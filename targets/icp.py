@@ -393,7 +393,9 @@ class _Correspondences:
         for b in np.flatnonzero(active.numpy()):
             qb = q_np[b]
             moved = qb - self.ref[b]
-            need = ~(np.einsum("ij,ij->j", moved, moved) < self.slack[b] ** 2)
+            # a slack <= 0 (a tie d2 = d1, nothing found, or a gap below the margin) means: ask
+            # again after any move (squaring -inf would say "never")
+            need = ~(np.einsum("ij,ij->j", moved, moved) < np.maximum(self.slack[b], 0.0) ** 2)
             need &= self.finite[b]  # (non-finite queries get the sentinel from nearest2)
             order = self.orders[b]
             sel = order[need[order]]

@@ -204,6 +204,29 @@ def test_correspondence_cache_returns_the_nearest_neighbour_of_every_point():
     assert skipped > 2 * p.shape[1]  # the cache really saved queries
 
 
+def test_correspondence_cache_requeries_points_whose_two_nearest_were_tied():
+    """A point whose nearest and second-nearest map points were equally far (a duplicated map
+    point; d2 - d1 = 0 leaves no slack) is asked again after any move, so it still gets its true
+    nearest map point once it has moved away from the duplicate."""
+    from icpbench.core.mapindex import MapIndex
+    from icpbench.targets.icp import _Correspondences
+
+    rng = np.random.default_rng(2)
+    s = scene_sample(500, 5_000, seed=4)
+    twins = s.map[rng.choice(len(s.map), 500, replace=False)]
+    m = MapIndex(np.vstack([s.map, twins]))  # every twin is a duplicate of a map point
+    p = torch.as_tensor(twins[None].copy())  # (1, N, 3): each point on a duplicated map point
+    finite = torch.ones(1, 500, dtype=torch.bool)
+    nn = _Correspondences([m], p, finite, torch.float64)
+    q = p.transpose(1, 2).contiguous()
+    for step in (0.0, 0.3, 0.05, 0.2):
+        q = q + torch.as_tensor(rng.normal(0, step, q.shape))
+        got = nn.update(q, torch.ones(1, dtype=torch.bool)).numpy()[0]
+        want, _ = m.query(q[0].T.numpy())
+        have = np.linalg.norm(m.points[got] - q[0].T.numpy(), axis=1)
+        np.testing.assert_allclose(have, want, rtol=0, atol=1e-12)  # a tie may name either twin
+
+
 def test_correspondence_cache_beyond_the_bound_never_changes_which_points_count():
     """With a query bound, points whose nearest map point is beyond it may keep a stale row while
     they move less than the excess; every point within the bound still gets its true nearest map
