@@ -824,16 +824,15 @@ def main() -> None:
     except KeyboardInterrupt:
         pass
     except SystemExit:
-        if _stop is None:
+        if _stop is None or _reported:
             raise
-        if _reported:
+    finally:
+        if _stop is not None:
             _keep_exit_status()
-            raise
     if not _reported:
         _reported = True
         typer.echo(f"\n{_stop_word()} before any result was saved; re-running the same command "
                    "starts from the beginning", err=True)  # no command got to save anything
-    _keep_exit_status()
     sys.exit(128 + (_stop or signal.SIGINT))
 
 
