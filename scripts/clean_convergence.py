@@ -13,7 +13,9 @@ Usage (from the repository root; about 15 minutes on two cores)::
 
 Writes ``OUT/clean_convergence.{md,csv}``, ``OUT/manifest.json`` (commands, commit, versions) and
 the two run folders ``OUT/runs/{defaults,variants}`` (each with the runner's ``results.csv`` and
-``manifest.json``). Re-running resumes the runs.
+``manifest.json``). Re-running resumes the runs; each run's manifest keeps, per range of rows,
+the commit that made them (``provenance``), this script's manifest gathers them, and the table warns
+when they differ.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from pathlib import Path
 import pandas as pd
 
 from icpbench.harness.outputs import write_csv, write_file, write_json
-from icpbench.harness.runner import git_commit, package_versions
+from icpbench.harness.report import provenance_notes
+from icpbench.harness.results import read_manifest, software_of
 
 TARGETS = ["p2plane", "p2point", "open3d", "kiss-icp", "small-gicp", "kiss-icp-replica",
            "small-gicp-replica"]
@@ -77,17 +80,20 @@ def main() -> None:
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     cmds = commands(args.out, args.samples)
-    git = git_commit()  # the code that runs: the tree as it is now
     t0 = time.time()
     for cmd in cmds.values():
         subprocess.run([_icpbench(), *cmd], check=True)
-    parts = []
+    parts, provenance = [], {}
     for name in cmds:
-        df = pd.read_csv(args.out / "runs" / name / "results.csv")
+        run_dir = args.out / "runs" / name
+        provenance[name] = (read_manifest(run_dir) or {}).get("provenance") or []
+        df = pd.read_csv(run_dir / "results.csv")
         if name == "variants":
             df["target"] = df["target"].map(lambda t: f"{t} ({VARIANTS[t]})")
         parts.append(df)
     rows = pd.concat(parts, ignore_index=True)
+    rows.attrs["provenance"] = [e for entries in provenance.values() for e in entries]
+    makers = list({software_of(e): e for e in rows.attrs["provenance"]}.values())
     table = summarise(rows)
     write_csv(args.out / "clean_convergence.csv", table, index=False)
     md = ["# Clean convergence of the ICP targets (lidar settings)", "",
@@ -99,12 +105,16 @@ def main() -> None:
           "Command: `OMP_NUM_THREADS=1 python scripts/clean_convergence.py --out "
           f"{args.out}`, which runs:", ""]
     md += [f"    icpbench {' '.join(c)}" for c in cmds.values()]
+    md += ["", *provenance_notes(rows)] if len(makers) > 1 else []
     write_file(args.out / "clean_convergence.md", "\n".join(md) + "\n")
     manifest = {"script": "scripts/clean_convergence.py", "samples": args.samples,
                 "commands": {k: ["icpbench", *v] for k, v in cmds.items()},
-                "git": git, "versions": package_versions(),
+                # the software that made the rows (the runs' own manifests say which rows)
+                "git": makers[0].get("git") if len(makers) == 1 else None,
+                "versions": makers[0].get("versions") if len(makers) == 1 else None,
+                "provenance": provenance,
                 "machine": {"platform": platform.platform(), "processor": platform.processor()},
-                "wall_s": round(time.time() - t0, 1),
+                "wall_s_this_invocation": round(time.time() - t0, 1),
                 "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
     write_json(args.out / "manifest.json", manifest)
     print(table.to_markdown(index=False))

@@ -10,7 +10,8 @@ Pairs: ``open3d`` (point-to-plane) -> ``p2plane``; ``open3d`` with ``mode=point`
 ``kiss-icp`` -> ``kiss-icp-replica``; ``small-gicp`` (GICP) -> ``small-gicp-replica``; all with
 their registered lidar defaults.
 
-Usage (from the repository root; resumable, rows are appended per scan)::
+Usage (from the repository root; resumable, rows are appended per scan, and rows made by an
+earlier commit keep it in the manifest's ``provenance``; the table warns when they differ)::
 
     OMP_NUM_THREADS=1 python scripts/replica_agreement.py --samples 24 --out results/replica-agreement
 
@@ -31,12 +32,15 @@ import numpy as np
 import pandas as pd
 import torch
 
+from icpbench.core.errors import InputError
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.se3 import pose_error_components
 from icpbench.core.types import Batch
 from icpbench.datasets.lidar_sim import LidarSimDataset
 from icpbench.harness.outputs import write_csv, write_file, write_json
-from icpbench.harness.runner import build_attack, build_target, git_commit, package_versions
+from icpbench.harness.report import provenance_notes
+from icpbench.harness.results import resume_provenance
+from icpbench.harness.runner import build_attack, build_target, software
 
 #: pair name -> (black-box entry point, its settings)
 PAIRS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -47,6 +51,7 @@ PAIRS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 CONDITIONS = ("none", "uniform", "normal", "sector")
 BUDGET_M = 1.0
+ROWS_FILE = "agreement.csv"
 
 
 def _row_key(r: dict[str, Any]) -> tuple[str, str, str]:
@@ -79,11 +84,18 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=24)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
+    try:
+        run(args)
+    except InputError as exc:
+        raise SystemExit(f"error: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> None:
+    """Register, append the rows not yet in ``args.out`` and write the summary and manifest."""
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
-    git = git_commit()  # the code that runs: the tree as it is now
     t_start = time.time()
-    csv = args.out / "agreement.csv"
+    csv = args.out / ROWS_FILE
     done = set()
     if csv.exists():
         done = {_row_key(r) for r in pd.read_csv(csv).to_dict("records")}
@@ -94,6 +106,17 @@ def main() -> None:
         bb = build_target(ep, "lidar", params)
         pairs[name] = (bb, bb.replica(), {})
     attacks = {a: build_attack(a, strict=False) for a in CONDITIONS}
+    manifest = {"script": "scripts/replica_agreement.py", "samples": args.samples,
+                "seed": args.seed, "budget_m": BUDGET_M, "conditions": list(CONDITIONS),
+                "pairs": {k: {"black_box": v[0], "params": v[1],
+                              "replica": pairs[k][1].name,
+                              "black_box_settings": pairs[k][0].settings(),
+                              "replica_settings": pairs[k][1].settings()}
+                          for k, v in PAIRS.items()},
+                **resume_provenance(args.out, ROWS_FILE, software()),
+                "machine": {"platform": platform.platform(), "processor": platform.processor()},
+                "finished": False}
+    write_json(args.out / "manifest.json", manifest)  # before any row, so each row has its commit
     for attack_name, attack in attacks.items():
         for s in samples:
             todo = [p for p in pairs if (p, attack_name, s.id) not in done]
@@ -129,6 +152,7 @@ def main() -> None:
             print(attack_name, s.id, " ".join(f"{r['pair']}:{1e3 * r['dt_m']:.3f}mm" for r in rows),
                   flush=True)
     rows = pd.read_csv(csv)
+    rows.attrs["provenance"] = manifest["provenance"]
     table = summarise(rows)
     write_csv(args.out / "summary.csv", table, index=False)
     md = ["# Black-box ICP targets against their differentiable replicas", "",
@@ -140,19 +164,10 @@ def main() -> None:
           "`err_*_median_m`: median `trans_err_xy` against the ground truth; `s_*`: seconds per "
           "scan (one thread, shared 2-core machine).", "", table.to_markdown(index=False), "",
           f"Command: `OMP_NUM_THREADS=1 python scripts/replica_agreement.py --samples "
-          f"{args.samples} --out {args.out}`", ""]
+          f"{args.samples} --out {args.out}`", "", *provenance_notes(rows)]
     write_file(args.out / "agreement.md", "\n".join(md))
-    manifest = {"script": "scripts/replica_agreement.py", "samples": args.samples,
-                "seed": args.seed, "budget_m": BUDGET_M, "conditions": list(CONDITIONS),
-                "pairs": {k: {"black_box": v[0], "params": v[1],
-                              "replica": pairs[k][1].name,
-                              "black_box_settings": pairs[k][0].settings(),
-                              "replica_settings": pairs[k][1].settings()}
-                          for k, v in PAIRS.items()},
-                "git": git, "versions": package_versions(),
-                "machine": {"platform": platform.platform(), "processor": platform.processor()},
-                "wall_s_this_invocation": round(time.time() - t_start, 1),
-                "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+    manifest.update(finished=True, wall_s_this_invocation=round(time.time() - t_start, 1),
+                    date=time.strftime("%Y-%m-%d %H:%M:%S %Z"))
     write_json(args.out / "manifest.json", manifest)
     print(table.to_markdown(index=False))
 

@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from typer.testing import CliRunner
@@ -373,6 +374,48 @@ def test_a_resume_with_other_software_keeps_the_old_rows_provenance(tmp_path, mo
     assert m["provenance"][1]["versions"]["torch"] == "0.0-other"
     text = table1(load_results(tmp_path), reference="none")
     assert "written by 2 different software versions or commits" in text
+
+
+def test_a_script_resuming_its_row_log_keeps_the_commit_that_made_the_old_rows(tmp_path):
+    """The row logs of ``scripts/`` (e.g. the replica agreement) resume: a later commit appending
+    rows must not relabel the earlier ones, and rows without a manifest are refused."""
+    from icpbench.harness.outputs import write_json
+    from icpbench.harness.report import provenance_notes
+    from icpbench.harness.results import resume_provenance
+
+    def made_by(commit):
+        return {"versions": {"torch": "2"}, "git": {"commit": commit, "dirty": False},
+                "platform": {"machine": "x86_64"}}
+
+    # a fresh folder (or one whose log is empty) is labelled with the code that runs now
+    assert resume_provenance(tmp_path, "rows.csv", made_by("bbb"))["git"]["commit"] == "bbb"
+    (tmp_path / "rows.csv").write_text("a,b\n1,2\n3,4\n")
+    with pytest.raises(InputError, match="holds 2 rows but .* no manifest.json"):
+        resume_provenance(tmp_path, "rows.csv", made_by("bbb"))
+    # a manifest written before provenance was kept (only ``git``): its rows keep that commit
+    write_json(tmp_path / "manifest.json", {"git": {"commit": "aaa", "dirty": False},
+                                            "versions": {"torch": "2"}})
+    m = resume_provenance(tmp_path, "rows.csv", made_by("bbb"))
+    assert m["git"]["commit"] == "aaa"
+    assert [(e["rows_from"], e["git"]["commit"]) for e in m["provenance"]] == [(0, "aaa"),
+                                                                              (2, "bbb")]
+    write_json(tmp_path / "manifest.json", m)
+    (tmp_path / "rows.csv").write_text("a,b\n1,2\n3,4\n5,6\n")
+    m = resume_provenance(tmp_path, "rows.csv", made_by("ccc"))
+    assert [e["rows_from"] for e in m["provenance"]] == [0, 2, 3] and m["git"]["commit"] == "aaa"
+    rows = pd.DataFrame({"a": [1, 3, 5]})
+    rows.attrs["provenance"] = m["provenance"]
+    assert "written by 3 different software versions or commits" in provenance_notes(rows)[0]
+    rows.attrs["provenance"] = m["provenance"][:1]
+    assert provenance_notes(rows) == []
+
+
+def test_the_scripts_with_row_logs_record_provenance_instead_of_the_current_commit():
+    """No results script labels rows with ``git_commit()`` of the tree that merely resumed them."""
+    root = Path(__file__).resolve().parent.parent
+    for name in ("replica_agreement.py", "clean_convergence.py"):
+        text = (root / "scripts" / name).read_text()
+        assert "git_commit" not in text and "provenance" in text, name
 
 
 def test_table_of_an_interrupted_or_running_run_says_the_grid_is_incomplete(tmp_path, tiny_run):

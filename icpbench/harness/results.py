@@ -336,9 +336,10 @@ def folder_in_use(out_dir: str | Path) -> bool:
 PROVENANCE_FIELDS = ("versions", "git", "platform")
 
 
-def count_rows(out_dir: str | Path) -> int:
-    """Data lines in the results CSV of ``out_dir`` (0 when there is none)."""
-    path = Path(out_dir) / RESULTS_FILE
+def count_rows(out_dir: str | Path, name: str = RESULTS_FILE) -> int:
+    """Data lines in the CSV ``name`` (default: the results CSV) of ``out_dir`` (0 when there is
+    none)."""
+    path = Path(out_dir) / name
     if not path.is_file() or path.stat().st_size == 0:
         return 0
     with open(path, "rb") as f:
@@ -409,6 +410,27 @@ def merge_provenance(old: Mapping[str, Any] | None, new: Mapping[str, Any],
                      **{k: old.get(k) for k in PROVENANCE_FIELDS}}])
     return {**{k: old.get(k, new.get(k)) for k in PROVENANCE_FIELDS},
             "provenance": [*history, entry]}
+
+
+def resume_provenance(out_dir: str | Path, rows_file: str,
+                      software: Mapping[str, Any]) -> dict[str, Any]:
+    """The provenance fields (see :func:`merge_provenance`) of a script that appends rows to the
+    CSV ``out_dir/rows_file`` and resumes from the rows already there, run by ``software`` (its
+    ``versions``, ``git`` and ``platform``).
+
+    Rows made by an earlier commit keep that commit: ``git`` stays the one that created the folder
+    and ``provenance`` gains an entry from the first row this invocation may append.
+
+    Raises:
+        InputError: the CSV holds rows but the folder has no manifest, so what made them is unknown.
+    """
+    rows = count_rows(out_dir, rows_file)
+    old = read_manifest(out_dir)
+    if rows and old is None:
+        raise InputError(f"{Path(out_dir) / rows_file} holds {rows} rows but {Path(out_dir)} has "
+                         f"no {MANIFEST_FILE}, so the code that made them is unknown; delete the "
+                         "folder (or the CSV) to compute them again")
+    return merge_provenance(old if rows else None, software, rows)
 
 
 def software_of(entry: Mapping[str, Any]) -> tuple:

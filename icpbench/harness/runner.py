@@ -317,6 +317,14 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+def software() -> dict[str, Any]:
+    """What makes the rows a process writes: package ``versions``, the source tree's ``git`` state
+    and the ``platform`` (the fields of :data:`icpbench.harness.results.PROVENANCE_FIELDS`)."""
+    return {"versions": package_versions(), "git": git_commit(),
+            "platform": {"machine": platform.machine(), "system": platform.system(),
+                         "processor": platform.processor(), "cpu_count": _cpu_count()}}
+
+
 #: Top-level folders that hold outputs, not inputs: changes there do not make a run "dirty".
 OUTPUT_DIRS = ("results/", "runs/")
 
@@ -504,11 +512,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         "config": asdict(cfg),
         "icp_preset": preset,
         "dataset": dataset.describe(),
-        "versions": package_versions(),
-        "git": git_commit(),
+        **software(),
         "threads": {"torch": cfg.threads},
-        "platform": {"machine": platform.machine(), "system": platform.system(),
-                     "processor": platform.processor(), "cpu_count": _cpu_count()},
     }
     manifest["fingerprints"] = {n: a.fingerprint(cfg.budgets) for n, a in worker.attacks.items()}
     with lock_results_dir(out_dir):
