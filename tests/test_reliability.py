@@ -376,6 +376,21 @@ def test_a_resume_with_other_software_keeps_the_old_rows_provenance(tmp_path, mo
     assert "written by 2 different software versions or commits" in text
 
 
+def test_a_resume_that_computes_nothing_leaves_the_manifest_as_it_was(tmp_path):
+    """Rewriting a board resumes every run folder; one that appends no row must keep the
+    execution settings and provenance of the runs that made its rows."""
+    from icpbench.harness.results import read_manifest
+
+    cfg = dict(SYN, attacks=["none"], budgets=[0.5], samples=2)
+    run(RunConfig(**cfg, executor="processes"), tmp_path, progress=False)
+    made = (tmp_path / "manifest.json").read_text()
+    run(RunConfig(**cfg), tmp_path, progress=False)  # local executor, nothing to compute
+    assert (tmp_path / "manifest.json").read_text() == made
+    run(RunConfig(**{**cfg, "samples": 3}), tmp_path, progress=False)  # one more scan
+    m = read_manifest(tmp_path)
+    assert m["config"]["executor"] == "local" and [e["rows_from"] for e in m["provenance"]] == [0, 2]
+
+
 def test_a_script_resuming_its_row_log_keeps_the_commit_that_made_the_old_rows(tmp_path):
     """The row logs of ``scripts/`` (e.g. the replica agreement) resume: a later commit appending
     rows must not relabel the earlier ones, and rows without a manifest are refused."""

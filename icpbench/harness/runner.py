@@ -549,7 +549,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                         {"rows_from": 0, "started": old.get("created"),
                          **{k: old.get(k) for k in PROVENANCE_FIELDS}}])}
         store = ResultsStore(out_dir)
-        manifest.update(merge_provenance(old, manifest, count_rows(out_dir)))
+        rows_before = count_rows(out_dir)
+        manifest.update(merge_provenance(old, manifest, rows_before))
         if redo:
             manifest["provenance"][-1]["redone"] = redo
         manifest["finished"] = False
@@ -562,6 +563,9 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
             _calibrate_monitors(cfg, worker, manifest, old, progress)
         manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         write_json(out_dir / MANIFEST_FILE, manifest)
+        # a resume that appends nothing leaves the folder's manifest as it was: its execution
+        # settings and provenance describe the runs that made the rows
+        untouched = old is not None and not redo
         try:
             _run_items(cfg, worker, store, manifest, progress=progress, on_unit=on_unit)
         except BaseException:
@@ -569,8 +573,12 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                 (out_dir / MANIFEST_FILE).unlink(missing_ok=True)
                 raise
             manifest["completed_rows"] = len(store)
-            write_json(out_dir / MANIFEST_FILE, manifest)
+            write_json(out_dir / MANIFEST_FILE,
+                       old if untouched and count_rows(out_dir) == rows_before else manifest)
             raise
+        if untouched and count_rows(out_dir) == rows_before and old.get("finished", True):
+            write_json(out_dir / MANIFEST_FILE, old)
+            return store
         manifest["completed_rows"] = len(store)
         manifest["finished"] = True
         write_json(out_dir / MANIFEST_FILE, manifest)
