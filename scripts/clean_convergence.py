@@ -32,7 +32,7 @@ import pandas as pd
 
 from icpbench.harness.outputs import write_csv, write_file, write_json
 from icpbench.harness.report import provenance_notes
-from icpbench.harness.results import read_manifest, software_of
+from icpbench.harness.results import commits_of, row_makers, software_of
 
 TARGETS = ["p2plane", "p2point", "open3d", "kiss-icp", "small-gicp", "kiss-icp-replica",
            "small-gicp-replica"]
@@ -86,7 +86,7 @@ def main() -> None:
     parts, provenance = [], {}
     for name in cmds:
         run_dir = args.out / "runs" / name
-        provenance[name] = (read_manifest(run_dir) or {}).get("provenance") or []
+        provenance[name] = row_makers(run_dir)  # the entries that made its rows
         df = pd.read_csv(run_dir / "results.csv")
         if name == "variants":
             df["target"] = df["target"].map(lambda t: f"{t} ({VARIANTS[t]})")
@@ -112,7 +112,7 @@ def main() -> None:
                 # the software that made the rows (the runs' own manifests say which rows)
                 "git": makers[0].get("git") if len(makers) == 1 else None,
                 "versions": makers[0].get("versions") if len(makers) == 1 else None,
-                "provenance": provenance,
+                "provenance": provenance, "rows_made_by": commits_of(rows.attrs["provenance"]),
                 "machine": {"platform": platform.platform(), "processor": platform.processor()},
                 "wall_s_this_invocation": round(time.time() - t0, 1),
                 "date": time.strftime("%Y-%m-%d %H:%M:%S %Z")}

@@ -39,7 +39,7 @@ from icpbench.core.types import Batch
 from icpbench.datasets.lidar_sim import LidarSimDataset
 from icpbench.harness.outputs import write_csv, write_file, write_json
 from icpbench.harness.report import provenance_notes
-from icpbench.harness.results import resume_provenance
+from icpbench.harness.results import resume_provenance, row_makers
 from icpbench.harness.runner import build_attack, build_target, software
 
 #: pair name -> (black-box entry point, its settings)
@@ -152,7 +152,7 @@ def run(args: argparse.Namespace) -> None:
             print(attack_name, s.id, " ".join(f"{r['pair']}:{1e3 * r['dt_m']:.3f}mm" for r in rows),
                   flush=True)
     rows = pd.read_csv(csv)
-    rows.attrs["provenance"] = manifest["provenance"]
+    rows.attrs["provenance"] = row_makers(args.out, ROWS_FILE)  # the entries that made rows
     table = summarise(rows)
     write_csv(args.out / "summary.csv", table, index=False)
     md = ["# Black-box ICP targets against their differentiable replicas", "",

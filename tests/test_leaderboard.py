@@ -111,6 +111,10 @@ def test_small_board_runs_parses_ranks_and_resumes(tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert len(manifest["standard_variants_missing"]) == 8
     assert "kiss-icp" not in manifest["standard_variants_missing"]
+    # the commits that made each variant's rows, not only the one that wrote the board
+    assert set(manifest["rows_made_by"]) == set(board.variant)
+    assert all(c == [manifest["git"]["commit"] + ("+dirty" if manifest["git"]["dirty"] else "")]
+               for c in manifest["rows_made_by"].values())
     res = runner.invoke(app, [*ARGS, "--out", str(out), "--compare-with", str(tmp_path)])
     assert res.exit_code != 0 and "no board there" in res.output
 

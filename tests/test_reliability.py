@@ -396,7 +396,7 @@ def test_a_script_resuming_its_row_log_keeps_the_commit_that_made_the_old_rows(t
     rows must not relabel the earlier ones, and rows without a manifest are refused."""
     from icpbench.harness.outputs import write_json
     from icpbench.harness.report import provenance_notes
-    from icpbench.harness.results import resume_provenance
+    from icpbench.harness.results import commits_of, resume_provenance, row_makers
 
     def made_by(commit):
         return {"versions": {"torch": "2"}, "git": {"commit": commit, "dirty": False},
@@ -418,6 +418,8 @@ def test_a_script_resuming_its_row_log_keeps_the_commit_that_made_the_old_rows(t
     (tmp_path / "rows.csv").write_text("a,b\n1,2\n3,4\n5,6\n")
     m = resume_provenance(tmp_path, "rows.csv", made_by("ccc"))
     assert [e["rows_from"] for e in m["provenance"]] == [0, 2, 3] and m["git"]["commit"] == "aaa"
+    write_json(tmp_path / "manifest.json", m)  # ccc appended nothing: it made no row
+    assert commits_of(row_makers(tmp_path, "rows.csv")) == ["aaa", "bbb"]
     rows = pd.DataFrame({"a": [1, 3, 5]})
     rows.attrs["provenance"] = m["provenance"]
     assert "written by 3 different software versions or commits" in provenance_notes(rows)[0]

@@ -242,7 +242,7 @@ def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = 
     """
     from icpbench.analysis.validation_figure import plot_validation_route
     from icpbench.harness.outputs import claim, write_csv, write_file, write_json
-    from icpbench.harness.results import load_results
+    from icpbench.harness.results import commits_of, load_results, row_makers
     from icpbench.harness.runner import git_commit, load_dataset, package_versions
     from icpbench.harness.runner import run as run_grid
 
@@ -287,6 +287,9 @@ def validate(settings: ValidationSettings, out_dir: str | Path, *, route: str = 
     write_json(out / "summary.json", summary)
     write_file(out / "summary.md", summary_markdown(summary) + "\n")
     manifest = {"command": command, "settings": asdict(settings), "run_config": asdict(cfg),
+                # the commit that computed the predictors and wrote this folder; those that
+                # made the grid's rows (a resumed grid keeps each run's, run/manifest.json):
+                "rows_made_by": commits_of(row_makers(out / "run")),
                 "git": git_commit(), "versions": package_versions(),
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                 "seconds": {"grid_this_call": round(t_grid, 1), "predictors": round(t_pred, 1),

@@ -66,8 +66,10 @@ from icpbench.harness.protocol import (
 from icpbench.harness.results import (
     NOT_RUN,
     RESULTS_FILE,
+    commits_of,
     load_results,
     read_manifest,
+    row_makers,
 )
 from icpbench.harness.runner import SELF, RunConfig, build_target, git_commit, package_versions
 from icpbench.harness.runner import run as run_grid
@@ -323,6 +325,7 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
             f"{k}: {v}" for k, v in skipped.items()))
     board.attrs["skipped"] = dict(skipped)
     board.attrs["not_ranked"] = {**skipped, **board.attrs.get("not_ranked", {})}
+    board.attrs["runs"] = {k: str(v) for k, v in runs.items()}
     write_board(board, out, cfg, board.attrs["not_ranked"], compare_with=compare_with)
     return board
 
@@ -863,5 +866,8 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
         "skipped": skipped, "extra_not_run": board.attrs.get("extra_not_run", {}),
         "standard_variants_missing": cfg.missing_standard(),
+        # the commit that wrote this board; those that made each variant's rows:
+        "rows_made_by": {label: commits_of(row_makers(path))
+                         for label, path in (board.attrs.get("runs") or {}).items()},
         "versions": package_versions(), "git": git_commit(), "finished": True,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})

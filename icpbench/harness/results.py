@@ -313,7 +313,7 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     if manifest is not None:
         df.attrs["config"] = manifest.get("config") or {}
         df.attrs["finished"] = manifest.get("finished")  # None: a manifest older than the flag
-        df.attrs["provenance"] = manifest.get("provenance") or []
+        df.attrs["provenance"] = row_makers(p.parent, p.name)  # the runs that made its rows
     df.attrs["in_use"] = folder_in_use(p.parent)
     return df
 
@@ -431,6 +431,32 @@ def resume_provenance(out_dir: str | Path, rows_file: str,
                          f"no {MANIFEST_FILE}, so the code that made them is unknown; delete the "
                          "folder (or the CSV) to compute them again")
     return merge_provenance(old if rows else None, software, rows)
+
+
+def row_makers(out_dir: str | Path, rows_file: str = RESULTS_FILE) -> list[dict[str, Any]]:
+    """The ``provenance`` entries of ``out_dir``'s manifest that made at least one data line of
+    ``rows_file`` (an entry owns the lines from its ``rows_from`` to the next entry's); a manifest
+    without ``provenance`` counts as one entry of its own ``versions``, ``git`` and ``platform``.
+    Empty when the folder has no manifest or no rows."""
+    m = read_manifest(out_dir)
+    n = count_rows(out_dir, rows_file)
+    if m is None or n == 0:
+        return []
+    entries = m.get("provenance") or [{"rows_from": 0, **{k: m.get(k) for k in PROVENANCE_FIELDS}}]
+    ends = [int(e.get("rows_from") or 0) for e in entries[1:]] + [n]
+    return [dict(e) for e, end in zip(entries, ends, strict=True)
+            if end > int(e.get("rows_from") or 0)]
+
+
+def commits_of(entries: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The distinct commits (``"<sha>+dirty"`` for a dirty tree) of provenance entries, in order."""
+    out = []
+    for e in entries:
+        git = e.get("git") or {}
+        c = f"{git.get('commit') or 'unknown'}{'+dirty' if git.get('dirty') else ''}"
+        if c not in out:
+            out.append(c)
+    return out
 
 
 def software_of(entry: Mapping[str, Any]) -> tuple:
