@@ -105,7 +105,8 @@ def main() -> None:
           "Command: `OMP_NUM_THREADS=1 python scripts/clean_convergence.py --out "
           f"{args.out}`, which runs:", ""]
     md += [f"    icpbench {' '.join(c)}" for c in cmds.values()]
-    md += ["", *provenance_notes(rows)] if len(makers) > 1 else []
+    notes = provenance_notes(rows)  # rows made by more than one commit
+    md += ["", *notes] if notes else []
     write_file(args.out / "clean_convergence.md", "\n".join(md) + "\n")
     manifest = {"script": "scripts/clean_convergence.py", "samples": args.samples,
                 "commands": {k: ["icpbench", *v] for k, v in cmds.items()},

@@ -257,6 +257,7 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
                          f"({type(exc).__name__}: {str(exc).strip().splitlines()[0]})") from exc
     if df.empty:
         raise InputError(f"{p} holds no result rows")
+    n_lines = len(df)  # data lines, as the manifest's provenance counts them
     df["_line"] = np.arange(2, len(df) + 2)  # the CSV line of each row (1: the header)
     missing = [c for c in KEY_COLUMNS + ("status", "converged", "strict", "meta", "extra")
                if c not in df]
@@ -313,7 +314,7 @@ def load_results(path: str | Path, expand: bool = True) -> pd.DataFrame:
     if manifest is not None:
         df.attrs["config"] = manifest.get("config") or {}
         df.attrs["finished"] = manifest.get("finished")  # None: a manifest older than the flag
-        df.attrs["provenance"] = row_makers(p.parent, p.name)  # the runs that made its rows
+        df.attrs["provenance"] = entries_with_rows(manifest, n_lines)  # the runs that made rows
     df.attrs["in_use"] = folder_in_use(p.parent)
     return df
 
@@ -435,11 +436,15 @@ def resume_provenance(out_dir: str | Path, rows_file: str,
 
 def row_makers(out_dir: str | Path, rows_file: str = RESULTS_FILE) -> list[dict[str, Any]]:
     """The ``provenance`` entries of ``out_dir``'s manifest that made at least one data line of
-    ``rows_file`` (an entry owns the lines from its ``rows_from`` to the next entry's); a manifest
-    without ``provenance`` counts as one entry of its own ``versions``, ``git`` and ``platform``.
-    Empty when the folder has no manifest or no rows."""
-    m = read_manifest(out_dir)
-    n = count_rows(out_dir, rows_file)
+    its CSV ``rows_file`` (:func:`entries_with_rows`)."""
+    return entries_with_rows(read_manifest(out_dir), count_rows(out_dir, rows_file))
+
+
+def entries_with_rows(m: Mapping[str, Any] | None, n: int) -> list[dict[str, Any]]:
+    """The ``provenance`` entries of the manifest ``m`` that made at least one of the ``n`` data
+    lines of its rows file (an entry owns the lines from its ``rows_from`` to the next entry's); a
+    manifest without ``provenance`` counts as one entry of its own ``versions``, ``git`` and
+    ``platform``. Empty when there is no manifest or no row."""
     if m is None or n == 0:
         return []
     entries = m.get("provenance") or [{"rows_from": 0, **{k: m.get(k) for k in PROVENANCE_FIELDS}}]

@@ -563,9 +563,11 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
             _calibrate_monitors(cfg, worker, manifest, old, progress)
         manifest["created"] = (old or {}).get("created", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         write_json(out_dir / MANIFEST_FILE, manifest)
-        # a resume that appends nothing leaves the folder's manifest as it was: its execution
-        # settings and provenance describe the runs that made the rows
-        untouched = old is not None and not redo
+        def untouched() -> bool:
+            """A resume that appended nothing: the folder's manifest stays as it was (its
+            execution settings and provenance describe the runs that made the rows)."""
+            return old is not None and not redo and count_rows(out_dir) == rows_before
+
         try:
             _run_items(cfg, worker, store, manifest, progress=progress, on_unit=on_unit)
         except BaseException:
@@ -573,10 +575,9 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                 (out_dir / MANIFEST_FILE).unlink(missing_ok=True)
                 raise
             manifest["completed_rows"] = len(store)
-            write_json(out_dir / MANIFEST_FILE,
-                       old if untouched and count_rows(out_dir) == rows_before else manifest)
+            write_json(out_dir / MANIFEST_FILE, old if untouched() else manifest)
             raise
-        if untouched and count_rows(out_dir) == rows_before and old.get("finished", True):
+        if untouched() and old.get("finished", True):
             write_json(out_dir / MANIFEST_FILE, old)
             return store
         manifest["completed_rows"] = len(store)
