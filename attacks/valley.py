@@ -77,13 +77,10 @@ def candidates(points_map: np.ndarray, offset: np.ndarray, map_index: Any,
 
 
 def rho(r: np.ndarray, cost: CostSpec) -> np.ndarray:
-    """The model cost of residuals ``r`` (metres): Cauchy ``c^2/2 log(1 + r^2/c^2)`` or ``r^2/2``,
-    constant beyond the gate ``d_max`` (a gated pair pulls nothing)."""
-    r = np.minimum(np.abs(r), cost.d_max)
-    if cost.cauchy_c is None:
-        return 0.5 * r**2
-    c = cost.cauchy_c
-    return 0.5 * c**2 * np.log1p((r / c) ** 2)
+    """The model cost of residuals ``r`` (metres): ``cost``'s robust cost
+    (:meth:`~icpbench.core.cost_sensitivity.CostSpec.rho`; Cauchy ``c^2/2 log(1 + r^2/c^2)`` or
+    ``r^2/2`` by default), constant beyond the gate ``d_max`` (a gated pair pulls nothing)."""
+    return cost.rho(np.minimum(np.abs(r), cost.d_max))
 
 
 def line_climbs(points_map: np.ndarray, cand: np.ndarray, offset: np.ndarray, map_index: Any,
@@ -204,6 +201,9 @@ class ValleyAttack(SpoofAttack):
             with ``line_steps + 1``; on the first 16 scans of the ``town`` board, 4 steps took
             0.63-0.76x the default 8's time at 0.96-1.01x its error
             (results/valley-line-steps).
+        kernel_model: model the target's own robust kernel (Huber, Geman-McClure for KISS-ICP;
+            :func:`~icpbench.core.cost_sensitivity.cost_of` with ``kernels``) instead of Cauchy's
+            or none (False, the standard protocol's setting).
     """
 
     name: ClassVar[str] = "valley"
@@ -217,10 +217,17 @@ class ValleyAttack(SpoofAttack):
                                                 "line_steps": Range(1, 10_000)}
 
     def __init__(self, *, strict: bool = False, queries: int = 16, directions: int = 8,
-                 screen: int = 0, line_steps: int = LINE_STEPS, **params: Any) -> None:
+                 screen: int = 0, line_steps: int = LINE_STEPS, kernel_model: bool = False,
+                 **params: Any) -> None:
         if isinstance(line_steps, bool) or int(line_steps) != line_steps or int(line_steps) < 1:
             raise InputError(f"{self.name} line_steps must be an integer >= 1, got {line_steps!r}")
+        if not isinstance(kernel_model, bool):
+            raise InputError(f"{self.name} kernel_model must be true or false, got "
+                             f"{kernel_model!r}")
         self.line_steps = int(line_steps)
+        self.kernel_model = kernel_model
+        if kernel_model:  # recorded only when set, so the standard protocol's settings stay as they were
+            params["kernel_model"] = True
         super().__init__(strict=strict, queries=queries, directions=directions, screen=screen,
                          line_steps=self.line_steps, **params)
 
@@ -228,4 +235,5 @@ class ValleyAttack(SpoofAttack):
                      map_index: Any, budget_m: float, oracle: QueryOracle) -> np.ndarray:
         """:func:`valley_displacement` with the evaluated target's model cost."""
         return valley_displacement(points_map, rotation, offset, map_index, budget_m,
-                                   cost_of(oracle.target), self.line_steps)
+                                   cost_of(oracle.target, kernels=self.kernel_model),
+                                   self.line_steps)

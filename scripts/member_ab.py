@@ -114,8 +114,10 @@ def _job(args: tuple[dict[str, Any], str, int]) -> dict[str, Any]:
                                        **setup["dataset_params"])
         _CACHE["target"] = build_target(setup["target"], setup["preset"],
                                         setup["target_params"] or None)
+        _CACHE["replica"] = _CACHE["target"].exact_replica()
     batch = Batch.from_samples([_CACHE["dataset"][i]])
-    oracle = QueryOracle.prepared(_CACHE["target"], batch)
+    # queries answered by the target's exact replica where it has one, as the runner does
+    oracle = QueryOracle.prepared(_CACHE["target"], batch, answer_with=_CACHE["replica"])
     attack = registry.attacks.get(setup["member"])(**setup["settings"][arm])
     gens = SampleGenerators.for_batch(batch, setup["seed"], setup["member"], setup["budget"])
     t0 = time.perf_counter()

@@ -55,6 +55,52 @@ def test_the_model_cost_is_gated_and_cauchy():
     np.testing.assert_allclose(rho(r, CostSpec("point", d_max=2.0)), [0.0, 0.5, 2.0, 2.0])
 
 
+@pytest.mark.parametrize("kernel", ["cauchy", "huber", "geman_mcclure"])
+def test_each_kernels_cost_has_the_icps_weight_as_its_slope(kernel):
+    # rho'(r) = r w(r), with w the ICP's own weight (icpbench.targets.icp.kernel_weight): the
+    # model cost is the one whose IRLS steps the target takes
+    from icpbench.targets.icp import kernel_weight
+
+    spec = CostSpec("point", d_max=5.0, cauchy_c=0.7, kernel=kernel)
+    r = np.array([0.05, 0.3, 0.69, 0.71, 1.4, 3.0])
+    h = 1e-6
+    slope = (spec.rho(r + h) - spec.rho(r - h)) / (2 * h)
+    w_icp = kernel_weight(torch.tensor(r * r), kernel, 0.49)[0].numpy()
+    np.testing.assert_allclose(slope, r * w_icp, rtol=1e-6)
+    np.testing.assert_allclose(spec.weight(r), w_icp, rtol=1e-12)
+    assert spec.rho(np.zeros(1))[0] == 0.0
+    with pytest.raises(InputError, match="kernel"):
+        CostSpec("point", d_max=5.0, cauchy_c=0.7, kernel="tukey")
+
+
+def test_the_kernel_model_is_the_targets_own_only_when_asked():
+    from icpbench.core.cost_sensitivity import cost_of
+    from icpbench.targets.kiss import KissICPTarget
+    from icpbench.targets.p2plane import PointToPlaneICP
+
+    kiss = KissICPTarget("lidar")
+    assert cost_of(kiss) == CostSpec("point", kiss.max_corr, None)  # the standard protocol's
+    gm = cost_of(kiss, kernels=True)
+    assert gm.kernel == "geman_mcclure" and np.isclose(gm.cauchy_c ** 2, kiss.kernel)
+    huber = PointToPlaneICP("lidar", kernel="huber")
+    assert cost_of(huber).kernel == "cauchy" and cost_of(huber, kernels=True).kernel == "huber"
+    assert cost_of(PointToPlaneICP("lidar", kernel="none"), kernels=True).cauchy_c is None
+    # the setting is recorded only when set (the standard ensemble's valley is unchanged) and
+    # changes the plan on a kernel that differs from Cauchy's
+    assert "kernel_model" not in ValleyAttack().settings()
+    assert ValleyAttack(kernel_model=True).settings()["kernel_model"] is True
+    with pytest.raises(InputError, match="kernel_model"):
+        ValleyAttack(kernel_model=1)
+    p_map = _street()[0][::3]
+    index = MapIndex(*_street())
+    D = np.array([2.0, 0.0, 0.0])
+    cauchy = valley_displacement(p_map, np.eye(3), D, index, 0.6, CostSpec("point", 5.0, 0.3))
+    gm_plan = valley_displacement(p_map, np.eye(3), D, index, 0.6,
+                                  CostSpec("point", 5.0, 0.3, "geman_mcclure"))
+    assert np.linalg.norm(gm_plan, axis=1).max() <= 0.6 * (1 + 1e-12)
+    assert np.any(np.abs(cauchy - gm_plan) > 1e-9)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_the_choice_comes_within_one_points_range_of_the_linear_programme(seed):
     # the mixed relaxation, solved in full by HiGHS, bounds every choice from below; rounding the

@@ -68,6 +68,10 @@ GICP_NEIGHBOURS = 20
 GICP_EPS = 1e-3
 
 
+#: Robust kernels a :class:`CostSpec` may model (the weights of ``icpbench.targets.icp``).
+COST_KERNELS: tuple[str, ...] = ("cauchy", "huber", "geman_mcclure")
+
+
 @dataclass(frozen=True)
 class CostSpec:
     """Which cost a target minimises, as far as the one-step model needs it.
@@ -75,28 +79,65 @@ class CostSpec:
     Attributes:
         kind: ``"plane"``, ``"point"`` or ``"gicp"``.
         d_max: correspondence gate (metres): farther pairs carry no weight.
-        cauchy_c: Cauchy scale (metres) of the robust weight ``1 / (1 + (r/c)^2)`` on the residual
-            (its norm for point-to-point and GICP); None: no kernel.
+        cauchy_c: scale c (metres) of the robust weight on the residual (its norm for
+            point-to-point and GICP); None: no kernel.
+        kernel: which robust weight of scale c: ``"cauchy"`` ``1 / (1 + (r/c)^2)`` (the default,
+            and the only one :func:`cost_of` reports unless asked for the target's own),
+            ``"huber"`` ``min(1, c / |r|)`` or ``"geman_mcclure"`` ``1 / (1 + (r/c)^2)^2``.
     """
 
     kind: CostKind
     d_max: float
     cauchy_c: float | None = None
+    kernel: str = "cauchy"
 
     def __post_init__(self) -> None:
         if self.kind not in COST_KINDS:
             raise InputError(f"cost kind must be one of {', '.join(COST_KINDS)}, got {self.kind!r}")
         if not (np.isfinite(self.d_max) and self.d_max > 0):
             raise InputError(f"d_max must be a positive number of metres, got {self.d_max}")
+        if self.kernel not in COST_KERNELS:
+            raise InputError(f"cost kernel must be one of {', '.join(COST_KERNELS)}, got "
+                             f"{self.kernel!r}")
+
+    def weight(self, r: np.ndarray) -> np.ndarray:
+        """The robust weight w(r) (same shape) of residuals ``r`` in metres (1 without a kernel)."""
+        if self.cauchy_c is None:
+            return np.ones_like(np.asarray(r, dtype=np.float64))
+        u = np.asarray(r, dtype=np.float64) / self.cauchy_c
+        if self.kernel == "huber":
+            return 1.0 / np.maximum(1.0, np.abs(u))
+        w = 1.0 / (1.0 + u * u)
+        return w * w if self.kernel == "geman_mcclure" else w
+
+    def rho(self, r: np.ndarray) -> np.ndarray:
+        """The cost rho(r) (same shape, m^2) of residuals ``r`` in metres whose derivative is
+        ``r w(r)``: ``r^2 / 2`` without a kernel; Cauchy ``c^2/2 log(1 + r^2/c^2)``; Huber
+        ``r^2 / 2`` up to c, ``c |r| - c^2 / 2`` beyond; Geman-McClure ``r^2 / 2 / (1 + r^2/c^2)``.
+        The gate is not applied here."""
+        r = np.abs(np.asarray(r, dtype=np.float64))
+        if self.cauchy_c is None:
+            return 0.5 * r**2
+        c = self.cauchy_c
+        if self.kernel == "huber":
+            return np.where(r <= c, 0.5 * r**2, c * r - 0.5 * c**2)
+        if self.kernel == "geman_mcclure":
+            return 0.5 * r**2 / (1.0 + (r / c) ** 2)
+        return 0.5 * c**2 * np.log1p((r / c) ** 2)
 
 
-def cost_of(target: Any, default_d_max: float = 5.0) -> CostSpec:
+def cost_of(target: Any, default_d_max: float = 5.0, kernels: bool = False) -> CostSpec:
     """The cost a target minimises, read from its settings.
 
     Known targets: ``mode`` ``"plane"``/``"point"`` (``p2plane``, ``p2point``, ``open3d``), KISS-ICP
     (point-to-point, gate ``max_corr``), small_gicp (``registration_type`` GICP / PLANE_ICP / ICP,
     gate ``max_corr``). Any other target (a user's black box) is modelled as point-to-plane with its
     ``config.d_max`` (``default_d_max`` when it has none), the cost the analytic baseline assumes.
+
+    Without ``kernels`` every robust kernel is modelled as Cauchy's of the target's scale
+    ``config.cauchy_c`` and KISS-ICP's as none (what the standard protocol's attacks use). With
+    ``kernels`` the target's own: ``config.kernel`` (``"none"``: no kernel) and KISS-ICP's
+    Geman-McClure weight ``kernel^2 / (kernel + r^2)^2``, i.e. scale ``c = sqrt(kernel)``.
     """
     cfg = getattr(target, "config", None)
     d_max = getattr(target, "max_corr", None) or getattr(cfg, "d_max", None) or default_d_max
@@ -106,9 +147,15 @@ def cost_of(target: Any, default_d_max: float = 5.0) -> CostSpec:
         kind = {"GICP": "gicp", "PLANE_ICP": "plane", "ICP": "point"}.get(str(rtype), "plane")
         return CostSpec(kind, float(d_max), None)
     if getattr(target, "name", "") == "kiss-icp":
+        if kernels:
+            return CostSpec("point", float(d_max), float(np.sqrt(target.kernel)), "geman_mcclure")
         return CostSpec("point", float(d_max), None)
     mode = getattr(target, "mode", "plane")
-    return CostSpec("point" if mode == "point" else "plane", float(d_max), c)
+    kind = "point" if mode == "point" else "plane"
+    own = getattr(cfg, "kernel", "cauchy")
+    if kernels and c is not None and own in COST_KERNELS:
+        return CostSpec(kind, float(d_max), c, own)
+    return CostSpec(kind, float(d_max), None if kernels and own == "none" else c)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -223,7 +270,7 @@ def linearise(scan: np.ndarray, T: np.ndarray, map_index: MapIndex, cost: CostSp
         W = np.linalg.inv(Cm + R @ Cs @ R.T)
         rr = np.linalg.norm(r, axis=1)
     if cost.cauchy_c is not None:
-        W = W / (1.0 + (rr / cost.cauchy_c) ** 2)[:, None, None]
+        W = W * cost.weight(rr)[:, None, None]
     return LinearisedCost(index=index, S=sensitivities(qk, W), R=R)
 
 
