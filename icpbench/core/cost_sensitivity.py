@@ -269,7 +269,9 @@ def linearise(scan: np.ndarray, T: np.ndarray, map_index: MapIndex, cost: CostSp
         Cs = plane_covariances(p)[index] if scan_cov is None else np.asarray(scan_cov)[index]
         W = np.linalg.inv(Cm + R @ Cs @ R.T)
         rr = np.linalg.norm(r, axis=1)
-    if cost.cauchy_c is not None:
+    if cost.cauchy_c is not None and cost.kernel == "cauchy":  # (divided, as before kernels)
+        W = W / (1.0 + (rr / cost.cauchy_c) ** 2)[:, None, None]
+    elif cost.cauchy_c is not None:
         W = W * cost.weight(rr)[:, None, None]
     return LinearisedCost(index=index, S=sensitivities(qk, W), R=R)
 
