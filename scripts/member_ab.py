@@ -51,10 +51,10 @@ def _value(text: str) -> Any:
         return text
 
 
-def plan(board: Path, variant: str, member: str, changes: dict[str, Any], samples: int
-         ) -> tuple[dict[str, Any], list[tuple[str, int]], pd.DataFrame]:
+def plan(board: Path, variant: str, member: str, changes: dict[str, Any], samples: int,
+         start: int = 0) -> tuple[dict[str, Any], list[tuple[str, int]], pd.DataFrame]:
     """The work of an A/B: (setup shared by every job, the jobs (arm, scan index), the board's
-    ensemble rows of the first ``samples`` scans).
+    ensemble rows of ``samples`` scans from the board's scan ``start`` on).
 
     Raises:
         SystemExit: an unknown variant or member, a board without that variant's run, or a
@@ -86,13 +86,13 @@ def plan(board: Path, variant: str, member: str, changes: dict[str, Any], sample
     rows = df[(df.attack == "ensemble") & np.isclose(df.budget, cfg["budgets"][0])]
     if f"extra.{column(member)}" not in rows:
         raise SystemExit(f"the board's {variant!r} rows have no {member!r} member")
-    rows = rows.drop_duplicates("sample_id").head(samples)
+    rows = rows.drop_duplicates("sample_id").iloc[start:start + samples]
     setup = dict(dataset=cfg["dataset"], dataset_params=cfg["dataset_params"],
                  split=cfg["split"], dataset_seed=cfg["dataset_seed"],
                  preset=manifest["icp_preset"], target=v.target, target_params=v.params,
                  member=member, budget=float(cfg["budgets"][0]), seed=int(cfg["seeds"][0]),
                  settings={"A": base, "B": {**base, **changes}})
-    jobs = [(arm, i) for i in range(len(rows)) for arm in ("A", "B")]
+    jobs = [(arm, start + i) for i in range(len(rows)) for arm in ("A", "B")]
     return setup, jobs, rows
 
 
@@ -156,7 +156,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap.add_argument("--member", required=True, choices=INDEPENDENT)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of arm B (repeatable)")
-    ap.add_argument("--samples", type=int, default=16, help="the board's first scans")
+    ap.add_argument("--samples", type=int, default=16, help="scans, from --start on")
+    ap.add_argument("--start", type=int, default=0,
+                    help="the board's first scan to use (0: its first; to add scans to an A/B)")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -166,7 +168,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         if not sep or not key:
             raise SystemExit(f"--set needs KEY=VALUE, got {item!r}")
         changes[key.strip()] = _value(value.strip())
-    setup, jobs, rows = plan(args.board, args.variant, args.member, changes, args.samples)
+    if args.start < 0:
+        raise SystemExit(f"--start must be >= 0, got {args.start}")
+    setup, jobs, rows = plan(args.board, args.variant, args.member, changes, args.samples,
+                             args.start)
     work = [(setup, arm, i) for arm, i in jobs]
     if args.workers > 1:
         with mp.get_context("spawn").Pool(args.workers) as pool:

@@ -41,6 +41,16 @@ def test_a_member_alone_reproduces_its_board_and_runs_the_changed_setting(member
     assert (table.worst_estimate >= table.member_mean - 1e-12).all()
     assert np.isclose(table.loc["A", "worst_estimate"], table.loc["A", "board_worst"])
     assert (b.seconds > 0).all() and np.isfinite(b.err).all()
+    # --start adds later scans: the second scan alone gives the same rows as in the full A/B
+    later = tmp_path / "ab-later.csv"
+    member_ab.main(["--board", str(board), "--variant", "p2point", "--member", "valley",
+                    "--set", "line_steps=2", "--samples", "1", "--start", "1", "--out", str(later)])
+    second = pd.read_csv(later)
+    assert len(second) == 2 and set(second.sample_id) == {rows.sample_id.iloc[-1]}
+    full = rows.set_index(["arm", "sample_id"]).err
+    np.testing.assert_allclose(second.set_index(["arm", "sample_id"]).err,
+                               full.loc[list(second.set_index(["arm", "sample_id"]).index)],
+                               rtol=1e-12)
     manifest = json.loads(out.with_suffix(".json").read_text())
     assert manifest["settings"]["A"]["line_steps"] == VALLEY_LINE_STEPS
     assert manifest["settings"]["B"]["line_steps"] == 2
