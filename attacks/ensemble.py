@@ -164,6 +164,9 @@ class EnsembleAttack(Attack):
             error (0: it spends every query).
         spoof_queries, valley_queries: query budgets of ``spoof`` and ``valley`` per scan.
         valley_line_steps: steps of the line on which ``valley`` models the target's cost.
+        valley_kernel_model: ``valley`` models the target's own robust kernel
+            (:class:`~icpbench.attacks.valley.ValleyAttack` ``kernel_model``; off in the standard
+            protocol v2, recorded in the settings only when on).
         directions: headings each of them queries in its first sweep.
         screen: headings each of them ranks by the map's misfit before choosing which to query
             (:func:`~icpbench.attacks.spoof.misfit`; 0: an even fan, no screen).
@@ -189,7 +192,7 @@ class EnsembleAttack(Attack):
                  spoof_queries: int = SPOOF_QUERIES, valley_queries: int = VALLEY_QUERIES,
                  directions: int = DIRECTIONS, screen: int = SCREEN,
                  patience: int = SEARCH_PATIENCE, valley_line_steps: int = VALLEY_LINE_STEPS,
-                 **params: Any) -> None:
+                 valley_kernel_model: bool = False, **params: Any) -> None:
         for nm, v, lo in (("pgd_steps", pgd_steps, 0), ("sector_iterations", sector_iterations, 0),
                           ("queries", queries, 0), ("spoof_queries", spoof_queries, 1),
                           ("valley_queries", valley_queries, 1), ("directions", directions, 1),
@@ -214,9 +217,12 @@ class EnsembleAttack(Attack):
                                                     iterations=int(sector_iterations)),
             "spoof": SpoofAttack(strict=strict, queries=int(spoof_queries), **spoofing),
             "valley": ValleyAttack(strict=strict, queries=int(valley_queries),
-                                   line_steps=int(valley_line_steps), **spoofing),
+                                   line_steps=int(valley_line_steps),
+                                   kernel_model=valley_kernel_model, **spoofing),
             "drift": DriftAttack(strict=strict, queries=DRIFT_QUERIES, directions=int(directions)),
         }
+        if valley_kernel_model:  # (ValleyAttack checked it is a bool)
+            params["valley_kernel_model"] = True
         super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
                          sector_iterations=int(sector_iterations), queries=self.queries,
                          spoof_queries=int(spoof_queries), valley_queries=int(valley_queries),

@@ -209,6 +209,13 @@ def test_ensemble_members_are_named_once_and_checked():
     for bad_steps in (0, 1.5, True):
         with pytest.raises(InputError, match="valley_line_steps"):
             EnsembleAttack(valley_line_steps=bad_steps)
+    # valley's kernel model: off (and unrecorded, so protocol v2 boards resume) unless asked for
+    assert not EnsembleAttack().members["valley"].kernel_model
+    assert "valley_kernel_model" not in EnsembleAttack().settings()
+    gm = EnsembleAttack(valley_kernel_model=True)
+    assert gm.members["valley"].kernel_model and gm.settings()["valley_kernel_model"] is True
+    with pytest.raises(InputError, match="kernel_model"):
+        EnsembleAttack(valley_kernel_model="yes")
 
 
 def test_the_generator_takes_each_targets_own_surrogate_under_surrogate_self(tmp_path):
