@@ -152,10 +152,12 @@ def cost_of(target: Any, default_d_max: float = 5.0, kernels: bool = False) -> C
         return CostSpec("point", float(d_max), None)
     mode = getattr(target, "mode", "plane")
     kind = "point" if mode == "point" else "plane"
-    own = getattr(cfg, "kernel", "cauchy")
-    if kernels and c is not None and own in COST_KERNELS:
-        return CostSpec(kind, float(d_max), c, own)
-    return CostSpec(kind, float(d_max), None if kernels and own == "none" else c)
+    own = getattr(cfg, "kernel", "cauchy")  # one of icpbench.targets.icp.KERNELS
+    if kernels and own == "none":
+        c = None
+    if not kernels or c is None:
+        return CostSpec(kind, float(d_max), c)
+    return CostSpec(kind, float(d_max), c, own)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
