@@ -305,6 +305,14 @@ class Attack(ABC):
         """Settings recorded in the manifest."""
         return {"strict": self.strict, **self.params}
 
+    @classmethod
+    def settings_on(cls, settings: Mapping[str, Any], target: Any) -> dict[str, Any]:
+        """Recorded ``settings`` (as :meth:`settings` gives them) as they act on ``target``: a
+        setting that makes no difference against this target takes its neutral value, so that
+        a run resumed under a changed default keeps the rows it would compute again (the runner
+        compares settings this way). Default: ``settings`` unchanged."""
+        return dict(settings)
+
     def fingerprint(self, budgets: Sequence[float]) -> dict[str, str]:
         """Identities of the files this attack reads for these budgets (metres), e.g. checkpoint
         hashes: a resumed run refuses to mix results made from different files. Default: none."""

@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
@@ -77,6 +78,7 @@ from icpbench.attacks.sector_adaptive import SectorAdaptiveAttack, score
 from icpbench.attacks.spoof import SpoofAttack
 from icpbench.attacks.uniform import UniformTranslationAttack
 from icpbench.attacks.valley import ValleyAttack
+from icpbench.core.cost_sensitivity import KernelModel, acting_kernel_model
 from icpbench.core.errors import InputError
 from icpbench.core.registry import Range
 from icpbench.core.types import Batch
@@ -164,9 +166,9 @@ class EnsembleAttack(Attack):
             error (0: it spends every query).
         spoof_queries, valley_queries: query budgets of ``spoof`` and ``valley`` per scan.
         valley_line_steps: steps of the line on which ``valley`` models the target's cost.
-        valley_kernel_model: ``valley`` models the target's own robust kernel
-            (:class:`~icpbench.attacks.valley.ValleyAttack` ``kernel_model``; off in the standard
-            protocol v2, recorded in the settings only when on).
+        valley_kernel_model: how ``valley`` models the target's robust kernel
+            (:class:`~icpbench.attacks.valley.ValleyAttack` ``kernel_model``; ``"geman-mcclure"``
+            from the standard protocol v3, ``"cauchy"`` before).
         directions: headings each of them queries in its first sweep.
         screen: headings each of them ranks by the map's misfit before choosing which to query
             (:func:`~icpbench.attacks.spoof.misfit`; 0: an even fan, no screen).
@@ -192,7 +194,7 @@ class EnsembleAttack(Attack):
                  spoof_queries: int = SPOOF_QUERIES, valley_queries: int = VALLEY_QUERIES,
                  directions: int = DIRECTIONS, screen: int = SCREEN,
                  patience: int = SEARCH_PATIENCE, valley_line_steps: int = VALLEY_LINE_STEPS,
-                 valley_kernel_model: bool = False, **params: Any) -> None:
+                 valley_kernel_model: KernelModel = "geman-mcclure", **params: Any) -> None:
         for nm, v, lo in (("pgd_steps", pgd_steps, 0), ("sector_iterations", sector_iterations, 0),
                           ("queries", queries, 0), ("spoof_queries", spoof_queries, 1),
                           ("valley_queries", valley_queries, 1), ("directions", directions, 1),
@@ -221,14 +223,20 @@ class EnsembleAttack(Attack):
                                    kernel_model=valley_kernel_model, **spoofing),
             "drift": DriftAttack(strict=strict, queries=DRIFT_QUERIES, directions=int(directions)),
         }
-        if valley_kernel_model:  # (ValleyAttack checked it is a bool)
-            params["valley_kernel_model"] = True
         super().__init__(strict=strict, pgd_steps=self.pgd_steps, pgd_step_size=self.pgd_step_size,
                          sector_iterations=int(sector_iterations), queries=self.queries,
                          spoof_queries=int(spoof_queries), valley_queries=int(valley_queries),
                          directions=int(directions), screen=int(screen),
                          patience=int(patience), valley_line_steps=int(valley_line_steps),
-                         members=list(self.active), **params)
+                         valley_kernel_model=valley_kernel_model, members=list(self.active),
+                         **params)
+
+    @classmethod
+    def settings_on(cls, settings: Mapping[str, Any], target: Any) -> dict[str, Any]:
+        """``settings`` with ``valley_kernel_model`` as it acts on ``target``
+        (:func:`~icpbench.core.cost_sensitivity.acting_kernel_model`)."""
+        return {**settings, "valley_kernel_model": acting_kernel_model(
+            settings.get("valley_kernel_model"), target)}
 
     def active_for(self, oracle: QueryOracle | None) -> tuple[str, ...]:
         """The members that run against ``oracle``: the chosen ones, plus

@@ -209,11 +209,11 @@ def test_ensemble_members_are_named_once_and_checked():
     for bad_steps in (0, 1.5, True):
         with pytest.raises(InputError, match="valley_line_steps"):
             EnsembleAttack(valley_line_steps=bad_steps)
-    # valley's kernel model: off (and unrecorded, so protocol v2 boards resume) unless asked for
-    assert not EnsembleAttack().members["valley"].kernel_model
-    assert "valley_kernel_model" not in EnsembleAttack().settings()
-    gm = EnsembleAttack(valley_kernel_model=True)
-    assert gm.members["valley"].kernel_model and gm.settings()["valley_kernel_model"] is True
+    # valley's kernel model: Geman-McClure's where the target has it (protocol v3), recorded
+    assert EnsembleAttack().members["valley"].kernel_model == "geman-mcclure"
+    assert EnsembleAttack().settings()["valley_kernel_model"] == "geman-mcclure"
+    own = EnsembleAttack(valley_kernel_model="own")
+    assert own.members["valley"].kernel_model == "own"
     with pytest.raises(InputError, match="kernel_model"):
         EnsembleAttack(valley_kernel_model="yes")
 

@@ -243,7 +243,7 @@ def test_a_run_resumed_after_an_attacks_default_changed_is_refused(tmp_path, mon
                         {**ensemble.EnsembleAttack.__init__.__kwdefaults__, "patience": 3})
     res = runner.invoke(app, args)
     assert res.exit_code != 0
-    assert "ensemble.patience: stored 8, now 3" in res.output and "--redo" in res.output
+    assert "ensemble.patience on p2point: stored 8, now 3" in res.output and "--redo" in res.output
     res = runner.invoke(app, [*args, "--redo", "normal"])
     assert res.exit_code != 0 and "--redo normal: not among the run's attacks" in res.output
     # --redo: the ensemble's rows are removed and computed again, `uniform`'s are kept as they were
@@ -261,6 +261,35 @@ def test_a_run_resumed_after_an_attacks_default_changed_is_refused(tmp_path, mon
     assert manifest["attacks"]["ensemble"]["patience"] == 3
     prov = manifest["provenance"]
     assert [e["rows_from"] for e in prov] == [0, 2] and prov[-1]["redone"] == ["ensemble"]
+
+
+@pytest.mark.parametrize("target", ["p2point", "kiss-icp"])
+def test_a_changed_default_that_acts_the_same_on_the_target_keeps_the_rows(tmp_path, target):
+    """Protocol v3 records ``valley_kernel_model`` (v2 recorded none, i.e. Cauchy's plan). On a
+    target without a Geman-McClure kernel both compute the same rows: the run resumes and keeps
+    them; on KISS-ICP they differ, and the resume is refused naming the setting and the target."""
+    out = tmp_path / "r"
+    args = ["run", "--dataset", "synthetic", "--dataset-param", "n_scan=600", "--dataset-param",
+            "n_map=6000", "--attacks", "ensemble", "--attack-param", "ensemble.members=uniform",
+            "--targets", target, "--budgets", "0.5", "--samples", "2", "--surrogate", "self",
+            "--out", str(out), "--quiet"]
+    assert runner.invoke(app, args).exit_code == 0
+    before = (out / "results.csv").read_text()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["attacks"]["ensemble"].pop("valley_kernel_model") == "geman-mcclure"
+    (out / "manifest.json").write_text(json.dumps(manifest))  # as protocol v2 recorded it
+    res = runner.invoke(app, [*args, "--samples", "3"])
+    if target == "kiss-icp":
+        assert res.exit_code != 0
+        assert ("ensemble.valley_kernel_model on kiss-icp: stored 'cauchy', now 'geman-mcclure'"
+                in res.output), res.output
+        return
+    assert res.exit_code == 0, res.output
+    after = (out / "results.csv").read_text()
+    assert after.startswith(before) and len(after.splitlines()) == len(before.splitlines()) + 1
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["attacks"]["ensemble"]["valley_kernel_model"] == "geman-mcclure"
+    assert [e["rows_from"] for e in manifest["provenance"]] == [0, 2]
 
 
 # -- a board ranks only what was measured, and says what was not -------------------------------

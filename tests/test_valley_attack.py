@@ -73,24 +73,35 @@ def test_each_kernels_cost_has_the_icps_weight_as_its_slope(kernel):
         CostSpec("point", d_max=5.0, cauchy_c=0.7, kernel="tukey")
 
 
-def test_the_kernel_model_is_the_targets_own_only_when_asked():
-    from icpbench.core.cost_sensitivity import cost_of
+def test_the_kernel_model_acts_on_geman_mcclure_kernels_only_by_default():
+    from icpbench.core.cost_sensitivity import acting_kernel_model, cost_of
     from icpbench.targets.kiss import KissICPTarget
     from icpbench.targets.p2plane import PointToPlaneICP
 
     kiss = KissICPTarget("lidar")
-    assert cost_of(kiss) == CostSpec("point", kiss.max_corr, None)  # the standard protocol's
-    gm = cost_of(kiss, kernels=True)
-    assert gm.kernel == "geman_mcclure" and np.isclose(gm.cauchy_c ** 2, kiss.kernel)
+    assert cost_of(kiss, kernel_model="cauchy") == CostSpec("point", kiss.max_corr, None)  # v2's
+    for model in ("geman-mcclure", "own"):
+        gm = cost_of(kiss, kernel_model=model)
+        assert gm.kernel == "geman_mcclure" and np.isclose(gm.cauchy_c ** 2, kiss.kernel)
     huber = PointToPlaneICP("lidar", kernel="huber")
-    assert cost_of(huber).kernel == "cauchy" and cost_of(huber, kernels=True).kernel == "huber"
-    assert cost_of(PointToPlaneICP("lidar", kernel="none"), kernels=True).cauchy_c is None
-    # the setting is recorded only when set (the standard ensemble's valley is unchanged) and
-    # changes the plan on a kernel that differs from Cauchy's
-    assert "kernel_model" not in ValleyAttack().settings()
-    assert ValleyAttack(kernel_model=True).settings()["kernel_model"] is True
+    cauchy_icp = PointToPlaneICP("lidar")
+    assert cost_of(huber).kernel == "cauchy" and cost_of(huber, kernel_model="own").kernel == "huber"
+    assert cost_of(huber, kernel_model="geman-mcclure") == cost_of(huber)
+    assert cost_of(PointToPlaneICP("lidar", kernel="none"), kernel_model="own").cauchy_c is None
     with pytest.raises(InputError, match="kernel_model"):
-        ValleyAttack(kernel_model=1)
+        cost_of(kiss, kernel_model="tukey")
+    # a model acts as "cauchy" wherever it gives Cauchy's plan; None is a setting from before v3
+    assert acting_kernel_model("geman-mcclure", kiss) == "geman-mcclure"
+    assert acting_kernel_model(None, kiss) == "cauchy"
+    assert acting_kernel_model("geman-mcclure", huber) == "cauchy"
+    assert acting_kernel_model("own", huber) == "own"
+    assert acting_kernel_model("own", cauchy_icp) == "cauchy"  # its own kernel is Cauchy's
+    # the setting is recorded, and a setting recorded before it acts as "cauchy"
+    assert ValleyAttack().settings()["kernel_model"] == "geman-mcclure"
+    assert ValleyAttack.settings_on({"queries": 16}, huber) == {"queries": 16,
+                                                                 "kernel_model": "cauchy"}
+    with pytest.raises(InputError, match="kernel_model"):
+        ValleyAttack(kernel_model=True)
     p_map = _street()[0][::3]
     index = MapIndex(*_street())
     D = np.array([2.0, 0.0, 0.0])

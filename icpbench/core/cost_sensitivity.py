@@ -126,7 +126,16 @@ class CostSpec:
         return 0.5 * c**2 * np.log1p((r / c) ** 2)
 
 
-def cost_of(target: Any, default_d_max: float = 5.0, kernels: bool = False) -> CostSpec:
+#: How a plan models a target's robust kernel (:func:`cost_of`'s ``kernel_model``):
+#: ``"cauchy"`` every kernel as Cauchy's of the target's scale and KISS-ICP's as none (the standard
+#: protocol up to v2); ``"geman-mcclure"`` the same, except a Geman-McClure kernel (KISS-ICP's)
+#: as itself (the standard protocol from v3); ``"own"`` every target's own kernel.
+KERNEL_MODELS: tuple[str, ...] = ("cauchy", "geman-mcclure", "own")
+KernelModel = Literal["cauchy", "geman-mcclure", "own"]
+
+
+def cost_of(target: Any, default_d_max: float = 5.0,
+            kernel_model: KernelModel = "cauchy") -> CostSpec:
     """The cost a target minimises, read from its settings.
 
     Known targets: ``mode`` ``"plane"``/``"point"`` (``p2plane``, ``p2point``, ``open3d``), KISS-ICP
@@ -134,29 +143,55 @@ def cost_of(target: Any, default_d_max: float = 5.0, kernels: bool = False) -> C
     gate ``max_corr``). Any other target (a user's black box) is modelled as point-to-plane with its
     ``config.d_max`` (``default_d_max`` when it has none), the cost the analytic baseline assumes.
 
-    Without ``kernels`` every robust kernel is modelled as Cauchy's of the target's scale
-    ``config.cauchy_c`` and KISS-ICP's as none (what the standard protocol's attacks use). With
-    ``kernels`` the target's own: ``config.kernel`` (``"none"``: no kernel) and KISS-ICP's
-    Geman-McClure weight ``kernel^2 / (kernel + r^2)^2``, i.e. scale ``c = sqrt(kernel)``.
+    ``kernel_model`` (:data:`KERNEL_MODELS`) says which robust kernel the spec carries. The
+    target's own kernel is ``config.kernel`` (``"none"``: no kernel) of scale ``config.cauchy_c``,
+    and KISS-ICP's Geman-McClure weight ``kernel^2 / (kernel + r^2)^2``, i.e. scale
+    ``c = sqrt(kernel)``.
+
+    Raises:
+        InputError: an unknown ``kernel_model``.
     """
+    if kernel_model not in KERNEL_MODELS:
+        raise InputError(f"kernel_model must be one of {', '.join(KERNEL_MODELS)}, got "
+                         f"{kernel_model!r}")
+    own = _own_cost(target, default_d_max)
+    if kernel_model == "own" or kernel_model == "geman-mcclure" and own.kernel == "geman_mcclure":
+        return own
+    cfg = getattr(target, "config", None)
+    if getattr(target, "name", "") == "kiss-icp" or getattr(target, "registration_type", None):
+        return CostSpec(own.kind, own.d_max, None)
+    return CostSpec(own.kind, own.d_max, getattr(cfg, "cauchy_c", None))
+
+
+def acting_kernel_model(kernel_model: str | None, target: Any) -> str | None:
+    """The kernel model as it acts on ``target``: ``"cauchy"`` wherever ``kernel_model`` gives
+    the plan that ``"cauchy"`` gives (e.g. ``"geman-mcclure"`` on a target whose kernel is not
+    Geman-McClure's), else ``kernel_model``. None (a setting recorded before the model could be
+    chosen) is ``"cauchy"``; a value that is not a kernel model is returned as it is.
+
+    Two recorded settings that act alike on a target make the same rows; a resume compares them
+    this way (:meth:`icpbench.attacks.base.Attack.settings_on`)."""
+    km = "cauchy" if kernel_model is None else kernel_model
+    if km in KERNEL_MODELS and cost_of(target, kernel_model=km) == cost_of(target):
+        return "cauchy"
+    return km
+
+
+def _own_cost(target: Any, default_d_max: float) -> CostSpec:
+    """:func:`cost_of` with the target's own kernel (None where it has none)."""
     cfg = getattr(target, "config", None)
     d_max = getattr(target, "max_corr", None) or getattr(cfg, "d_max", None) or default_d_max
-    c = getattr(cfg, "cauchy_c", None)
     rtype = getattr(target, "registration_type", None)
     if rtype is not None:
         kind = {"GICP": "gicp", "PLANE_ICP": "plane", "ICP": "point"}.get(str(rtype), "plane")
         return CostSpec(kind, float(d_max), None)
     if getattr(target, "name", "") == "kiss-icp":
-        if kernels:
-            return CostSpec("point", float(d_max), float(np.sqrt(target.kernel)), "geman_mcclure")
-        return CostSpec("point", float(d_max), None)
-    mode = getattr(target, "mode", "plane")
-    kind = "point" if mode == "point" else "plane"
+        return CostSpec("point", float(d_max), float(np.sqrt(target.kernel)), "geman_mcclure")
+    kind = "point" if getattr(target, "mode", "plane") == "point" else "plane"
     own = getattr(cfg, "kernel", "cauchy")  # one of icpbench.targets.icp.KERNELS
-    if kernels and own == "none":
-        c = None
-    if not kernels or c is None:
-        return CostSpec(kind, float(d_max), c)
+    c = getattr(cfg, "cauchy_c", None)
+    if own == "none" or c is None:
+        return CostSpec(kind, float(d_max), None)
     return CostSpec(kind, float(d_max), c, own)
 
 

@@ -28,8 +28,10 @@ from icpbench.core.errors import InputError
 #: Version of the standard protocol. Raise it whenever a change of the code or of the settings
 #: below changes what a standard board computes (e.g. the ensemble's default members). Version 2
 #: (2026-11-27): ``sector`` joins the default members and ``valley`` models the target's cost on 4
-#: steps of its line (was 8).
-STANDARD_VERSION = 2
+#: steps of its line (was 8). Version 3 (2026-11-29): ``valley`` models a Geman-McClure kernel
+#: (KISS-ICP's) as itself (``valley_kernel_model="geman-mcclure"``; v2 modelled it as none); on
+#: every other standard variant v3 computes what v2 did.
+STANDARD_VERSION = 3
 
 
 @dataclass(frozen=True)

@@ -288,20 +288,33 @@ def config_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[s
     return out
 
 
-def settings_differences(stored: Mapping[str, Any] | None, now: Mapping[str, Any]) -> list[str]:
+def settings_differences(stored: Mapping[str, Any] | None, now: Mapping[str, Any],
+                         attacks: Mapping[str, Attack] | None = None,
+                         targets: Mapping[str, Any] | None = None) -> list[str]:
     """The settings (``attack.key: stored X, now Y``) of attacks recorded in both ``stored`` and
     ``now`` (attack name -> its resolved ``settings()``, defaults included) that differ: rows of
     one attack made with two settings must not mix, even when the command line is the same and
-    only a default of the code changed."""
+    only a default of the code changed.
+
+    Given the run's ``attacks`` (name -> instance) and ``targets`` (name -> instance), settings
+    are compared as they act on each target (:meth:`Attack.settings_on`): a changed setting that
+    computes the same rows against every target of the run is not a difference, and one that
+    does not is named with the target (``attack.key on TARGET: ...``)."""
     out: list[str] = []
     for name, new in (now or {}).items():
         old = (stored or {}).get(name)
         if old is None:
             continue
         new = json.loads(json.dumps(new, sort_keys=True, default=str))  # as a manifest stores it
-        for k in sorted(set(old) | set(new)):
-            if old.get(k) != new.get(k):
-                out.append(f"{name}.{k}: stored {old.get(k)!r}, now {new.get(k)!r}")
+        pairs: list[tuple[str, Mapping[str, Any], Mapping[str, Any]]] = [("", old, new)]
+        if attacks is not None and targets and name in attacks:
+            act = attacks[name].settings_on
+            pairs = [(f" on {tn}", act(old, t), act(new, t)) for tn, t in targets.items()]
+        for where, o, n in pairs:
+            for k in sorted(set(o) | set(n)):
+                line = f"{name}.{k}{where}: stored {o.get(k)!r}, now {n.get(k)!r}"
+                if o.get(k) != n.get(k) and line not in out:
+                    out.append(line)
     return out
 
 
@@ -537,7 +550,8 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
                     f"{out_dir} holds results made with other files for attack(s) "
                     f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
             kept = {n: v for n, v in (old.get("attacks") or {}).items() if n not in redo}
-            diff = settings_differences(kept, {n: a.settings() for n, a in worker.attacks.items()})
+            diff = settings_differences(kept, {n: a.settings() for n, a in worker.attacks.items()},
+                                        worker.attacks, worker.targets)
             if diff:
                 raise InputError(
                     f"{out_dir} holds results of attacks with other settings ({'; '.join(diff)}), "
