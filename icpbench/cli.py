@@ -460,6 +460,7 @@ def leaderboard(
     executor: Annotated[str, _opt(LB, "executor")] = "local",
     out: Annotated[str | None, _opt(LB, "out")] = None,
     compare_with: Annotated[str | None, _opt(LB, "compare_with")] = None,
+    carry_over: Annotated[str | None, _opt(LB, "carry_over")] = None,
     monitors: Annotated[str | None, _opt(LB, "monitors")] = None,
     monitor_aware: Annotated[bool, _opt(LB, "monitor_aware", "--monitor-aware")] = False,
     quiet: Annotated[bool, _opt(LB, "quiet", "--quiet")] = False,
@@ -480,8 +481,8 @@ def leaderboard(
             add_target=list(add_target or []), extra_attacks=extra_attacks or [],
             dataset=dataset, dataset_param=_flat(dataset_param, "--dataset-param"),
             ensemble_param=_flat(ensemble_param, "--ensemble-param"), seed=seed,
-            executor=executor, out=out, compare_with=compare_with, monitors=monitors or [],
-            monitor_aware=monitor_aware, quiet=quiet))
+            executor=executor, out=out, compare_with=compare_with, carry_over=carry_over,
+            monitors=monitors or [], monitor_aware=monitor_aware, quiet=quiet))
         out_dir = Path(o.out if o.out is not None else "results/leaderboard"
                        if o.domain == "town" else f"results/leaderboard-{o.domain}")
         cfg = LeaderboardConfig.for_domain(o.domain, executor=o.executor,
@@ -518,7 +519,7 @@ def leaderboard(
             raise typer.BadParameter(f"--compare-with {compare_with}: no board there (no "
                                      "leaderboard.csv)")
         board = run_leaderboard(cfg, out_dir, progress=not quiet, on_variant=note,
-                                compare_with=compare_with)
+                                compare_with=compare_with, carry_over_from=o.carry_over)
         typer.echo((out_dir / "leaderboard.md").read_text())
         typer.echo(f"{board.variant.nunique()} of {n} variant(s) ranked, {len(board)} rows: "
                    f"{out_dir}/leaderboard.md, .csv, .png")

@@ -214,6 +214,47 @@ def test_a_board_is_resumed_only_under_its_own_protocol_and_never_over_a_run(tmp
     assert res.exit_code != 0 and "records none" in res.output
 
 
+def test_a_new_protocol_version_carries_over_only_the_runs_it_would_compute_again(tmp_path):
+    """A board of an earlier version whose ensemble recorded no ``valley_kernel_model`` (v2):
+    p2point's rows stay under the new version and are copied, KISS-ICP's (a Geman-McClure
+    kernel) are computed again; the board records and names what it carried over. A board of
+    another protocol than its version gives nothing."""
+    old, new = tmp_path / "old", tmp_path / "new"
+    args = ["leaderboard", "--samples", "1", "--dataset", "synthetic", "--dataset-param",
+            "n_scan=600", "--dataset-param", "n_map=6000", "--budgets", "0.5", "--ensemble-param",
+            "members=uniform", "--variants", "p2point,kiss-icp", "--quiet"]
+    assert runner.invoke(app, [*args, "--out", str(old)]).exit_code == 0
+    board = json.loads((old / "manifest.json").read_text())
+    board["protocol"]["version"] = -1
+    (old / "manifest.json").write_text(json.dumps(board))
+    for slug in ("p2point", "kiss-icp"):  # as the earlier version recorded them
+        m = json.loads((old / "runs" / slug / "manifest.json").read_text())
+        del m["attacks"]["ensemble"]["valley_kernel_model"]
+        (old / "runs" / slug / "manifest.json").write_text(json.dumps(m))
+    res = runner.invoke(app, [*args, "--out", str(new), "--carry-over", str(old)])
+    assert res.exit_code == 0, res.output
+    assert ((new / "runs" / "p2point" / "results.csv").read_text()
+            == (old / "runs" / "p2point" / "results.csv").read_text())
+    kept = json.loads((new / "runs" / "p2point" / "manifest.json").read_text())
+    assert kept == json.loads((old / "runs" / "p2point" / "manifest.json").read_text())
+    made = json.loads((new / "runs" / "kiss-icp" / "manifest.json").read_text())
+    assert [e["rows_from"] for e in made["provenance"]] == [0]  # computed under this version
+    assert made["attacks"]["ensemble"]["valley_kernel_model"] == "geman-mcclure"
+    manifest = json.loads((new / "manifest.json").read_text())
+    assert list(manifest["carried_over"]) == ["p2point"]
+    assert manifest["carried_over"]["p2point"]["protocol"]["version"] == -1
+    md = (new / "leaderboard.md").read_text()
+    assert "Carried over" in md and "p2point (v-1" in md
+    # a rewrite without the option keeps the record
+    assert runner.invoke(app, [*args, "--out", str(new)]).exit_code == 0
+    assert list(json.loads((new / "manifest.json").read_text())["carried_over"]) == ["p2point"]
+    # another protocol (here another budget) is refused before anything is copied
+    res = runner.invoke(app, [*[a if a != "0.5" else "0.4" for a in args],
+                              "--out", str(tmp_path / "other"), "--carry-over", str(old)])
+    assert res.exit_code != 0 and "budgets: stored [0.5]" in res.output
+    assert not (tmp_path / "other" / "runs").exists()
+
+
 def test_the_standard_protocol_is_the_default_and_names_its_domains():
     cfg = LeaderboardConfig()
     p = cfg.protocol()

@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,7 @@ from icpbench.harness.board_stats import (
     kendall_interval,
     paired_ratios,
 )
+from icpbench.harness.carry_over import carry_over
 from icpbench.harness.outputs import claim, write_csv, write_file, write_json
 from icpbench.harness.protocol import (
     STANDARD_DOMAINS,
@@ -267,7 +268,8 @@ class LeaderboardConfig:
 
 def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bool = True,
                     on_variant: Callable[[Variant, str], None] | None = None,
-                    compare_with: str | Path | None = None) -> pd.DataFrame:
+                    compare_with: str | Path | None = None,
+                    carry_over_from: str | Path | None = None) -> pd.DataFrame:
     """Compute (or resume) every variant's run under ``out_dir/runs`` and write the board.
 
     A variant whose settings its target refuses (e.g. a kernel it does not have), or whose target
@@ -277,6 +279,10 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     also in ``board.attrs["skipped"]``). ``on_variant(variant, status)`` is called as each one
     starts (``"running (k of n)"``), ends (its wall time) or is skipped (the reason); the run's
     own progress bar shows the time left within a variant.
+
+    ``carry_over_from`` (a board of an earlier version of the same protocol) first copies each of
+    its runs whose rows this protocol would compute again (:func:`~icpbench.harness.carry_over.
+    carry_over`); the board's manifest records them (``carried_over``) and its Markdown names them.
 
     Returns:
         The board (one row per ranked variant and budget), also written as ``leaderboard.csv``.
@@ -292,6 +298,19 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
         write_json(out / "manifest.json", {
             "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(), "config": asdict(cfg),
             "finished": False, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+    carried = dict((read_manifest(out) or {}).get("carried_over") or {})
+    if carry_over_from is not None:
+        by_label = {v.label: v for v in variants}
+        news = carry_over({v.label: (cfg.run_config(v), v.slug) for v in variants},
+                          cfg.protocol().as_dict(), out, Path(carry_over_from))
+        for label, what in news.items():
+            if what.startswith("carried over"):
+                carried[label] = {"from": str(Path(carry_over_from) / "runs" / by_label[label].slug),
+                                  "protocol": (read_manifest(Path(carry_over_from)) or {}).get(
+                                      "protocol")}
+            if on_variant:
+                on_variant(by_label[label], what)
+        write_json(out / "manifest.json", {**(read_manifest(out) or {}), "carried_over": carried})
     runs: dict[str, Path] = {}
     skipped: dict[str, str] = {}
     for k, v in enumerate(variants, 1):
@@ -326,6 +345,7 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     board.attrs["skipped"] = dict(skipped)
     board.attrs["not_ranked"] = {**skipped, **board.attrs.get("not_ranked", {})}
     board.attrs["runs"] = {k: str(v) for k, v in runs.items()}
+    board.attrs["carried_over"] = {k: v for k, v in carried.items() if k in runs}
     write_board(board, out, cfg, board.attrs["not_ranked"], compare_with=compare_with)
     return board
 
@@ -830,6 +850,19 @@ def _comparison_figure(board: pd.DataFrame, other: Path, cfg: LeaderboardConfig,
                   title=f"The same variants on two boards: Kendall's tau = {_fmt(tau)} over {n}")
 
 
+def carried_markdown(carried: Mapping[str, Mapping[str, Any]], cfg: LeaderboardConfig) -> str:
+    """The board's line on the runs it carried over from a board of an earlier protocol version
+    (:func:`~icpbench.harness.carry_over.carry_over`)."""
+    p = cfg.protocol()
+    parts = []
+    for label, c in carried.items():
+        v = (c.get("protocol") or {}).get("version", "?")
+        parts.append(f"{label} (v{v}, `{c.get('from')}`)")
+    return (f"Carried over to {p.name} v{p.version}, because this protocol computes the same rows "
+            f"for them (the run's configuration, files and settings as they act on its target): "
+            f"{'; '.join(parts)}. Every other variant was computed under v{p.version}.")
+
+
 def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
                 skipped: dict[str, str], compare_with: str | Path | None = None) -> None:
     """Write ``leaderboard.md``, ``.csv``, ``.png`` and ``manifest.json`` (``skipped``: the
@@ -845,6 +878,9 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         columns=unused + [c for c in board if c.startswith("ran_")]), index=False,
         float_format="%.6g")
     md = board_markdown(board, cfg, skipped)
+    carried = board.attrs.get("carried_over") or {}
+    if carried:
+        md += "\n" + carried_markdown(carried, cfg) + "\n"
     (out / COMPARISON_FIGURE).unlink(missing_ok=True)  # a stale figure of an earlier comparison
     if compare_with is not None:
         other = Path(compare_with)
@@ -865,6 +901,7 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
         "skipped": skipped, "extra_not_run": board.attrs.get("extra_not_run", {}),
+        "carried_over": carried,
         "standard_variants_missing": cfg.missing_standard(),
         # the commit that wrote this board; those that made each variant's rows:
         "rows_made_by": {label: commits_of(row_makers(path))

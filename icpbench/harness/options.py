@@ -340,7 +340,8 @@ class LeaderboardOptions(Options):
     ensemble_param: Settings = Field(
         {}, description="Ensemble setting KEY=VALUE, repeatable (members, pgd_steps, "
                         "pgd_step_size, sector_iterations, queries, patience, spoof_queries, "
-                        "valley_queries, valley_line_steps, directions, screen); departs from "
+                        "valley_queries, valley_line_steps, valley_kernel_model, directions, "
+                        "screen); departs from "
                         "the standard protocol.")
     seed: Seed | None = Field(
         None, description="Attack seed; departs from the standard protocol. [default: 0]")
@@ -352,6 +353,10 @@ class LeaderboardOptions(Options):
     compare_with: Name | None = Field(
         None, description="Another board's folder (e.g. the other domain's): state the agreement "
                           "of the two rankings (Kendall's tau) on this board.")
+    carry_over: Name | None = Field(
+        None, description="A board of an earlier version of the same protocol: copy in each of "
+                          "its runs whose rows this version computes again (the same run "
+                          "settings as they act on the variant's target); compute the rest.")
     monitors: Annotated[list[Name], _list("monitors")] = Field(
         [], description="Integrity monitors ('all' or comma-separated): the board adds each "
                         "variant's detection rate and undetected worst case. [default: none]")

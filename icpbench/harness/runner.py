@@ -489,6 +489,56 @@ class GridWorker:
 
 
 
+def run_manifest_head(cfg: RunConfig, worker: GridWorker) -> dict[str, Any]:
+    """What a run's manifest records of ``cfg`` before any row: the configuration, the ICP
+    preset, the dataset, the software and the attacks' file fingerprints."""
+    return {
+        "config": asdict(cfg),
+        "icp_preset": worker.preset,
+        "dataset": worker.dataset.describe(),
+        **software(),
+        "threads": {"torch": cfg.threads},
+        "fingerprints": {n: a.fingerprint(cfg.budgets) for n, a in worker.attacks.items()},
+    }
+
+
+def check_resume(out_dir: Path, old: Mapping[str, Any], manifest: Mapping[str, Any],
+                 worker: GridWorker, redo: Sequence[str] = ()) -> None:
+    """Refuse to add rows to the run of ``out_dir`` (its stored manifest ``old``) under the
+    manifest ``manifest`` (:func:`run_manifest_head`) of ``worker``'s configuration unless the
+    stored rows are rows this configuration would compute again: the same configuration (more
+    samples or attacks aside, :func:`config_differences`), the same files of each attack, and
+    the same settings of each attack as they act on each target (:func:`settings_differences`);
+    the attacks in ``redo`` are computed again, so only their files and settings may differ.
+
+    Raises:
+        InputError: what differs, and what to do about it.
+    """
+    diff = config_differences(old.get("config", {}), manifest["config"])
+    if diff:
+        raise InputError(
+            f"{out_dir} holds results of a different configuration ({'; '.join(diff)}); "
+            "use a new --out (or the same command to resume)")
+    # a manifest older than the fingerprints cannot show which files made its rows: an attack
+    # that has files (a generator checkpoint) is then refused too, or the rewritten manifest
+    # would label the old rows with the new checkpoint and commit
+    old_fp = old.get("fingerprints")
+    changed = [n for n, fp in manifest["fingerprints"].items()
+               if fp and n not in redo and (old_fp is None or old_fp.get(n) != fp)]
+    if changed:
+        raise InputError(
+            f"{out_dir} holds results made with other files for attack(s) "
+            f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
+    kept = {n: v for n, v in (old.get("attacks") or {}).items() if n not in redo}
+    diff = settings_differences(kept, {n: a.settings() for n, a in worker.attacks.items()},
+                                worker.attacks, worker.targets)
+    if diff:
+        raise InputError(
+            f"{out_dir} holds results of attacks with other settings ({'; '.join(diff)}), "
+            "e.g. made before a default changed; use a new --out, or --redo ATTACK to "
+            "compute that attack's rows again")
+
+
 def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
         on_unit: Callable[[int], None] | None = None, redo: Sequence[str] = ()) -> ResultsStore:
     """Run (or resume) the grid of ``cfg`` into ``out_dir``; return the results store.
@@ -520,43 +570,12 @@ def run(cfg: RunConfig, out_dir: str | Path, *, progress: bool = True,
     _check_out_dir(out_dir)
     claim(out_dir, "run")
     worker = GridWorker(cfg)
-    dataset, preset = worker.dataset, worker.preset
-    manifest = {
-        "config": asdict(cfg),
-        "icp_preset": preset,
-        "dataset": dataset.describe(),
-        **software(),
-        "threads": {"torch": cfg.threads},
-    }
-    manifest["fingerprints"] = {n: a.fingerprint(cfg.budgets) for n, a in worker.attacks.items()}
+    manifest = run_manifest_head(cfg, worker)
     with lock_results_dir(out_dir):
         _check_out_dir(out_dir)  # again, now that no other run can be writing
         old = read_manifest(out_dir)
         if old is not None:
-            diff = config_differences(old.get("config", {}), manifest["config"])
-            if diff:
-                raise InputError(
-                    f"{out_dir} holds results of a different configuration ({'; '.join(diff)}); "
-                    "use a new --out (or the same command to resume)")
-        if old is not None:
-            # a manifest older than the fingerprints cannot show which files made its rows: an
-            # attack that has files (a generator checkpoint) is then refused too, or the rewritten
-            # manifest would label the old rows with the new checkpoint and commit
-            old_fp = old.get("fingerprints")
-            changed = [n for n, fp in manifest["fingerprints"].items()
-                       if fp and n not in redo and (old_fp is None or old_fp.get(n) != fp)]
-            if changed:
-                raise InputError(
-                    f"{out_dir} holds results made with other files for attack(s) "
-                    f"{', '.join(changed)} (e.g. a changed checkpoint); use a new --out or delete it")
-            kept = {n: v for n, v in (old.get("attacks") or {}).items() if n not in redo}
-            diff = settings_differences(kept, {n: a.settings() for n, a in worker.attacks.items()},
-                                        worker.attacks, worker.targets)
-            if diff:
-                raise InputError(
-                    f"{out_dir} holds results of attacks with other settings ({'; '.join(diff)}), "
-                    "e.g. made before a default changed; use a new --out, or --redo ATTACK to "
-                    "compute that attack's rows again")
+            check_resume(out_dir, old, manifest, worker, redo)
             if redo:
                 old = {**old, "provenance": drop_attack_rows(
                     out_dir, redo, old.get("provenance") or [
