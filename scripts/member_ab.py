@@ -80,6 +80,8 @@ def plan(board: Path, variant: str, member: str, changes: dict[str, Any], sample
     ens_settings = {k: x for k, x in manifest["attacks"]["ensemble"].items() if k != "strict"}
     # boards made before the ensemble had this setting ran valley on its own default
     ens_settings.setdefault("valley_line_steps", LINE_STEPS)
+    # and before protocol v3 modelled KISS-ICP's kernel as none, every other as Cauchy's
+    ens_settings.setdefault("valley_kernel_model", "cauchy")
     ens = EnsembleAttack(**ens_settings)
     base = {k: x for k, x in ens.members[member].settings().items() if k != "strict"}
     df = load_results(run)
