@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -248,6 +249,11 @@ def test_a_new_protocol_version_carries_over_only_the_runs_it_would_compute_agai
     # a rewrite without the option keeps the record
     assert runner.invoke(app, [*args, "--out", str(new)]).exit_code == 0
     assert list(json.loads((new / "manifest.json").read_text())["carried_over"]) == ["p2point"]
+    # a carried-over run deleted and computed again is no longer carried over
+    shutil.rmtree(new / "runs" / "p2point")
+    assert runner.invoke(app, [*args, "--out", str(new)]).exit_code == 0
+    assert json.loads((new / "manifest.json").read_text())["carried_over"] == {}
+    assert "Carried over" not in (new / "leaderboard.md").read_text()
     # another protocol (here another budget) is refused before anything is copied
     res = runner.invoke(app, [*[a if a != "0.5" else "0.4" for a in args],
                               "--out", str(tmp_path / "other"), "--carry-over", str(old)])

@@ -314,6 +314,8 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     runs: dict[str, Path] = {}
     skipped: dict[str, str] = {}
     for k, v in enumerate(variants, 1):
+        if not (out / "runs" / v.slug).exists():  # computed here, not carried over
+            carried.pop(v.label, None)
         rc = cfg.run_config(v)
         try:
             rc.validate()
