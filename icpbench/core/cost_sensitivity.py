@@ -163,7 +163,7 @@ def cost_of(target: Any, default_d_max: float = 5.0,
     return CostSpec(own.kind, own.d_max, getattr(cfg, "cauchy_c", None))
 
 
-def acting_kernel_model(kernel_model: str | None, target: Any) -> str | None:
+def acting_kernel_model(kernel_model: str | None, target: Any) -> str:
     """The kernel model as it acts on ``target``: ``"cauchy"`` wherever ``kernel_model`` gives
     the plan that ``"cauchy"`` gives (e.g. ``"geman-mcclure"`` on a target whose kernel is not
     Geman-McClure's), else ``kernel_model``. None (a setting recorded before the model could be

@@ -301,13 +301,14 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     carried = dict((read_manifest(out) or {}).get("carried_over") or {})
     if carry_over_from is not None:
         by_label = {v.label: v for v in variants}
+        source = Path(carry_over_from)
         news = carry_over({v.label: (cfg.run_config(v), v.slug) for v in variants},
-                          cfg.protocol().as_dict(), out, Path(carry_over_from))
+                          cfg.protocol().as_dict(), out, source)
+        source_protocol = (read_manifest(source) or {}).get("protocol")
         for label, what in news.items():
             if what.startswith("carried over"):
-                carried[label] = {"from": str(Path(carry_over_from) / "runs" / by_label[label].slug),
-                                  "protocol": (read_manifest(Path(carry_over_from)) or {}).get(
-                                      "protocol")}
+                carried[label] = {"from": str(source / "runs" / by_label[label].slug),
+                                  "protocol": source_protocol}
             if on_variant:
                 on_variant(by_label[label], what)
         write_json(out / "manifest.json", {**(read_manifest(out) or {}), "carried_over": carried})
