@@ -37,6 +37,9 @@ class Target(ABC):
     #: :meth:`register` is differentiable with respect to the scans (usable as a surrogate of
     #: gradient attacks); it then receives the batch's ``MapIndex`` maps instead of prepared ones.
     differentiable: ClassVar[bool] = False
+    #: :meth:`register` takes the batch's ``MapIndex`` maps (every differentiable target does;
+    #: so does a compiled forward pass that answers queries, without gradients).
+    takes_map_index: ClassVar[bool] = False
     #: The target's ICP settings (an ``icpbench.targets.icp.ICPConfig``), or None for a target
     #: that does not use them.
     config: Any = None

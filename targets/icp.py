@@ -283,7 +283,7 @@ def icp(
 
     T_out = torch.cat([torch.cat([R, t[..., None]], -1),
                        T_init[:, 3:4, :].to(dtype)], 1)
-    status = _health(H_last, n_inliers, converged, T_out.detach(), cfg)
+    status = health(H_last, n_inliers, converged, T_out.detach(), cfg)
     converged = converged & torch.tensor([s == "ok" for s in status])
     return Registration(
         T=T_out,
@@ -672,7 +672,7 @@ def _solve(H: torch.Tensor, g: torch.Tensor, cfg: ICPConfig) -> torch.Tensor:
     return -torch.linalg.solve(H + lam[:, None, None] * eye6, g[..., None])[..., 0]
 
 
-def _health(H: torch.Tensor, n_inliers: torch.Tensor, converged: torch.Tensor,
+def health(H: torch.Tensor, n_inliers: torch.Tensor, converged: torch.Tensor,
             T: torch.Tensor, cfg: ICPConfig) -> list[str]:
     """Per-sample status: ok / nonfinite / too_few_correspondences / singular / not_converged."""
     out = []

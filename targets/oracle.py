@@ -39,8 +39,9 @@ class QueryOracle:
         batch: the batch under attack (true poses and initial guesses).
         maps: B maps in the form ``target.register`` takes (prepared handles for a black box, the
             batch's ``MapIndex`` for a differentiable target).
-        answer_with: a differentiable target that registers the queries in ``target``'s place
-            (its :meth:`~icpbench.targets.base.Target.exact_replica`), on the batch's maps; None:
+        answer_with: a target that registers the queries in ``target``'s place (its
+            :meth:`~icpbench.targets.base.Target.exact_replica`), on the batch's ``MapIndex`` maps
+            (a differentiable target, or one with ``takes_map_index``); None:
             the target itself. ``target`` stays the evaluated one: its name, settings and cost
             model are what attacks read.
     """
@@ -54,10 +55,11 @@ class QueryOracle:
                  answer_with: Target | None = None) -> None:
         if len(maps) != len(batch):
             raise InputError(f"oracle: got {len(maps)} maps for a batch of {len(batch)} scans")
-        if answer_with is not None and not answer_with.differentiable:
+        if answer_with is not None and not (answer_with.differentiable
+                                            or answer_with.takes_map_index):
             raise InputError(f"oracle: {answer_with.name!r} cannot answer for {target.name!r}: "
                              "an answering replica registers on the batch's maps, so it must be "
-                             "a differentiable target")
+                             "a differentiable target or take MapIndex maps")
         self.target = target
         self.answer_with = answer_with
         self.batch = batch

@@ -15,7 +15,9 @@ from icpbench.harness.runner import RunConfig, config_differences, run
 from icpbench.targets.kiss import KissICPTarget
 from icpbench.targets.kiss_replica import KissICPReplica
 from icpbench.targets.oracle import QueryOracle
+from icpbench.targets.p2plane import PointToPlaneICP
 from icpbench.targets.p2point import PointToPointICP
+from icpbench.targets.point_forward import CompiledPointICP
 from icpbench.targets.small_gicp import SmallGICPTarget
 
 LAM = 0.3
@@ -34,7 +36,7 @@ def test_kiss_replica_answers_the_queries_exactly_as_kiss(scene_pair):
     batch = scene_pair
     kiss = KissICPTarget("lidar")
     replica = kiss.exact_replica()
-    assert isinstance(replica, KissICPReplica)
+    assert isinstance(replica, CompiledPointICP) and isinstance(replica.of, KissICPReplica)
     by_kiss = QueryOracle.prepared(kiss, batch)
     answered = QueryOracle.prepared(kiss, batch, answer_with=replica)
     assert answered.name == "kiss-icp" and answered.target is kiss  # the cost model read is KISS's
@@ -51,7 +53,10 @@ def test_kiss_replica_answers_the_queries_exactly_as_kiss(scene_pair):
 
 
 def test_only_measured_replicas_answer_and_they_must_take_the_batch_maps(scene_pair):
-    assert PointToPointICP("lidar").exact_replica() is None  # it is its own answer
+    p2point = PointToPointICP("lidar")
+    assert isinstance(p2point.exact_replica(), CompiledPointICP)  # its compiled forward pass
+    assert PointToPointICP("lidar", nn_reuse_m=0.05).exact_replica() is None  # approximate
+    assert PointToPlaneICP("lidar").exact_replica() is None  # no compiled plane pass
     assert SmallGICPTarget("lidar").exact_replica() is None  # its replica differs by millimetres
     kiss = KissICPTarget("lidar")
     with pytest.raises(InputError, match="differentiable"):

@@ -1,0 +1,130 @@
+"""The compiled point-to-point forward pass registers as ``icp`` does (poses to rounding, the same
+iteration counts and status), its candidate lists name the exact nearest neighbour, and query
+attacks answered by it see the target's own errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from icpbench.attacks.ensemble import EnsembleAttack, column
+from icpbench.core.mapindex import MapIndex
+from icpbench.core.types import Batch
+from icpbench.datasets.synthetic_scene import scene_sample
+from icpbench.targets.kiss_replica import KissICPReplica
+from icpbench.targets.oracle import QueryOracle
+from icpbench.targets.p2point import PointToPointICP
+from icpbench.targets.point_forward import (
+    CANDIDATES,
+    CompiledPointICP,
+    _assign_lists,
+    _search_lists,
+)
+
+
+def _attacked(batch: Batch, seed: int, share: float = 0.4, lift_m: float = 0.8) -> torch.Tensor:
+    """Scans of the batch with a share of their points moved by up to ``lift_m`` in one heading
+    (points lifted off the surfaces, where neighbours are nearly equidistant), a few far away
+    (beyond the gate) and a few not finite."""
+    rng = np.random.default_rng(seed)
+    x = batch.scans.numpy().copy()
+    for b in range(x.shape[0]):
+        sub = rng.random(x.shape[1]) < share
+        head = rng.normal(size=3)
+        x[b, sub] += head / np.linalg.norm(head) * rng.uniform(0.1, lift_m, size=(sub.sum(), 1))
+        x[b, rng.random(x.shape[1]) < 0.02] += 20.0  # beyond d_max: no correspondence
+        x[b, rng.random(x.shape[1]) < 0.01] = np.nan
+    return torch.as_tensor(x)
+
+
+@pytest.fixture(scope="module")
+def batch() -> Batch:
+    return Batch.from_samples([scene_sample(1_500, 12_000, seed=s, noise_m=0.02) for s in range(3)])
+
+
+@pytest.mark.parametrize("settings", [
+    {}, {"kernel": "geman_mcclure", "cauchy_c": 0.5}, {"kernel": "huber", "cauchy_c": 0.3},
+    {"kernel": "none"}, {"d_max": None}, {"d_max": 1.0, "max_iterations": 7}])
+def test_compiled_pass_registers_as_icp(batch, settings):
+    target = PointToPointICP("lidar", **settings)
+    compiled = target.exact_replica()
+    assert isinstance(compiled, CompiledPointICP)
+    for seed in range(2):
+        x = _attacked(batch, seed)
+        ref, got = target.register(x, batch.maps, batch.T_init), compiled.register(
+            x, batch.maps, batch.T_init)
+        np.testing.assert_allclose(got.T.numpy(), ref.T.numpy(), rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(got.iterations.numpy(), ref.iterations.numpy())
+        np.testing.assert_array_equal(got.converged.numpy(), ref.converged.numpy())
+        np.testing.assert_array_equal(got.inlier_fraction.numpy(), ref.inlier_fraction.numpy())
+        assert got.status == ref.status
+
+
+def test_compiled_pass_on_duplicated_map_points_and_a_tiny_map():
+    """Duplicated map points (equal distances: either row gives the same residual) and a map
+    of fewer points than a candidate list holds."""
+    s = scene_sample(800, 6_000, seed=4)
+    pts = np.concatenate([s.map, s.map[:3_000]])  # every other point twice
+    for m in (MapIndex(pts), MapIndex(s.map[:CANDIDATES - 2])):
+        b = Batch.from_samples([s])
+        target = PointToPointICP("lidar")
+        x = _attacked(b, 5)
+        ref = target.register(x, [m], b.T_init)
+        got = target.exact_replica().register(x, [m], b.T_init)
+        np.testing.assert_allclose(got.T.numpy(), ref.T.numpy(), rtol=0, atol=1e-9)
+        assert got.status == ref.status and int(got.iterations) == int(ref.iterations)
+
+
+def test_kiss_replica_compiled_registers_as_the_replica(batch):
+    replica = KissICPReplica("lidar")
+    compiled = CompiledPointICP(replica, replica.config, replica.kiss_map)
+    x = _attacked(batch, 7)
+    ref, got = replica.register(x, batch.maps, batch.T_init), compiled.register(
+        x, batch.maps, batch.T_init)
+    np.testing.assert_allclose(got.T.numpy(), ref.T.numpy(), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(got.iterations.numpy(), ref.iterations.numpy())
+    assert got.status == ref.status
+
+
+def test_candidate_lists_name_the_exact_nearest_neighbour_or_ask_again():
+    """After a search at ref, points moved by 0-0.6 m: wherever the lists decide, the row is the
+    brute-force nearest map point (or, beyond the gate, every map point is too far)."""
+    rng = np.random.default_rng(0)
+    table = rng.uniform(-5, 5, size=(3_000, 3))
+    m = MapIndex(table)
+    N, bound = 2_000, 0.4
+    P = rng.uniform(-6, 6, size=(N, 3))
+    finite = np.ones(N, dtype=bool)
+    cand = np.full((N, CANDIDATES), len(table), dtype=np.int64)
+    r_k, idx, need = np.full(N, -np.inf), np.full(N, len(table), dtype=np.int64), np.zeros(N, bool)
+    ref = P.copy()
+    _search_lists(m, P, np.arange(N), CANDIDATES, cand, r_k, idx)
+    decided = 0
+    for step in (0.0, 0.05, 0.2, 0.6):
+        t = rng.normal(size=3)
+        t *= step / np.linalg.norm(t)
+        _assign_lists(P, finite, np.eye(3), t, ref, cand, r_k, table, bound, idx, need)
+        q = P + t
+        d = np.linalg.norm(q[:, None] - table[None], axis=2)
+        ok = ~need
+        exact = d.argmin(axis=1)
+        near = d.min(axis=1) < bound
+        assert np.array_equal(idx[ok & near], exact[ok & near])
+        assert np.all(d[ok & ~near].min(axis=1) >= bound)  # decided "no correspondence": right
+        decided += ok.sum()
+    assert 0 < decided < 4 * N  # some decided, some asked again
+
+
+def test_queries_answered_by_the_compiled_pass_see_the_targets_errors(batch):
+    target = PointToPointICP("lidar")
+    members = ("uniform", "spoof", "valley")
+    ens = EnsembleAttack(members=",".join(members), spoof_queries=4, valley_queries=3)
+    by_target = QueryOracle.prepared(target, batch)
+    answered = QueryOracle.prepared(target, batch, answer_with=target.exact_replica())
+    a = ens.run(batch, 0.5, surrogate=None, generator=0, oracle=by_target)
+    b = ens.run(batch, 0.5, surrogate=None, generator=0, oracle=answered)
+    for m in members:
+        np.testing.assert_allclose(b.extra[column(m)].numpy(), a.extra[column(m)].numpy(),
+                                   rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(answered.queries, by_target.queries)
