@@ -356,7 +356,7 @@ class KissICPTarget(BlackBoxTarget):
         lidar-sim scans, results/replica-agreement; the ensemble's every member error equal to
         1e-6 m on the board's scans) at about half KISS's time, and the compiled pass
         (:class:`~icpbench.targets.point_forward.CompiledPointICP`) as the replica does at about
-        half the replica's, so it answers the attacks' queries (the rows stay KISS's own
+        0.4x the replica's, so it answers the attacks' queries (the rows stay KISS's own
         registrations)."""
         from icpbench.targets.point_forward import CompiledPointICP
 

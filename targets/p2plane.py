@@ -40,7 +40,7 @@ class PointToPlaneICP(Target):
     def exact_replica(self) -> Target | None:
         """Point-to-point ICP with the hard gate and exact correspondences: its compiled forward
         pass (:class:`~icpbench.targets.point_forward.CompiledPointICP`, the same registrations
-        to about 1e-15 m and the same iteration counts, measured 3.2x faster per query), which
+        to about 1e-15 m and the same iteration counts, measured 3x faster per query), which
         answers the query attacks' registrations. Other modes and settings: None."""
         if self.mode != "point" or self.config.soft_dmax or self.config.nn_reuse_m != 0:
             return None

@@ -10,17 +10,19 @@ weights, normal equations, damped solve, left update and stopping test, in float
 per-point work compiled by Numba, one pass over the points per step, and returns what ``icp``
 returns to rounding (poses equal to about 1e-15 m, the same iteration counts; tests compare).
 
-Correspondences. On a plain :class:`~icpbench.core.mapindex.MapIndex` each point keeps its
-``K`` nearest map points (:data:`CANDIDATES`) from the last tree search at ``ref`` and the
-K-th distance ``r_K``: every other map point is at least ``r_K`` from ``ref``, so at least
-``r_K - |q - ref|`` from the point's position q. The nearest listed point is therefore the exact
-nearest neighbour while it is closer than that, and the point needs no tree search; when every
-listed point and that bound lie beyond the correspondence gate, the point has no correspondence
-either way. Points the lists cannot decide are searched again (about 15% per iteration on
-attacked scans, against about half with the two-neighbour slack of ``icp``'s cache, whose
-lookups are cheaper: 2x fewer tree seconds in all, measured). A map with its own neighbour
-rule (KISS-ICP's replica: :class:`~icpbench.targets.kiss_replica.KissReplicaMap`) keeps the
-two-distance slack of :class:`icpbench.targets.icp._Correspondences` through its ``nearest2``.
+Correspondences. Each point keeps its ``K`` nearest map points (:data:`CANDIDATES`) from the
+last tree search at ``ref`` and the K-th distance ``r_K``: every other map point is at least
+``r_K`` from ``ref``, so at least ``r_K - |q - ref|`` from the point's position q. The nearest
+listed point is therefore the exact nearest neighbour while it is closer than that, and the point
+needs no tree search; when every listed point and that bound lie beyond the correspondence gate,
+the point has no correspondence either way. Points the lists cannot decide are searched again
+(about 15% per iteration on attacked scans, against about half with the two-neighbour slack of
+``icp``'s cache, whose lookups are cheaper: 2x fewer tree seconds in all, measured). A map with
+a neighbour rule of its own (KISS-ICP's replica map,
+:class:`~icpbench.targets.kiss_replica.KissReplicaMap`: KISS's 27-voxel search) states how near
+its rule is the exact neighbour (``MapIndex.exact_within``, one voxel); the lists answer only
+nearer than that, and the other points take the map's ``nearest2`` with the two-distance slack
+of :class:`icpbench.targets.icp._Correspondences`.
 
 Only forward passes: no gradient, no ``nn_reuse_m``, the hard gate, float64 scans. The class
 :class:`CompiledPointICP` wraps a differentiable point-to-point target as its exact replica
@@ -64,11 +66,18 @@ def _transform(P: np.ndarray, R: np.ndarray, t: np.ndarray, i: int) -> tuple[flo
 
 
 @numba.njit(cache=True)
-def _assign_lists(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray,
-                  ref: np.ndarray, cand: np.ndarray, r_k: np.ndarray, table: np.ndarray,
-                  bound: float, idx: np.ndarray, need: np.ndarray) -> int:
-    """Candidate-list rule (module docstring): set idx (N,) where the lists decide, else
-    need (N,) True; returns the number of points to search again."""
+def _assign(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray, ref: np.ndarray,
+            cand: np.ndarray, r_k: np.ndarray, by_slack: np.ndarray, slack2: np.ndarray,
+            table: np.ndarray, bound: float, exact_within: float, idx: np.ndarray,
+            need: np.ndarray) -> int:
+    """Set idx (N,) where a point's row is decided without a search, else need (N,) True;
+    returns the number of points to search again (module docstring).
+
+    A point ``by_slack`` keeps its row while it moved less than its slack (``slack2``: squared;
+    0: ask again). The others take the nearest of their K listed map points ``cand`` (N, K) when
+    it is nearer than every unlisted one (at least ``r_k - moved``) and than ``exact_within``
+    (where the map's rule is the exact neighbour), or when all of them lie beyond the gate
+    ``bound``."""
     N, K, M = P.shape[0], cand.shape[1], table.shape[0]
     far = bound * (1.0 + _FAR_MARGIN)
     n_need = 0
@@ -78,8 +87,13 @@ def _assign_lists(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarra
             continue
         qx, qy, qz = _transform(P, R, t, i)
         dx, dy, dz = qx - ref[i, 0], qy - ref[i, 1], qz - ref[i, 2]
-        moved = math.sqrt(dx * dx + dy * dy + dz * dz)
-        room = r_k[i] - moved  # every unlisted map point is at least this far (NaN: never asked)
+        moved2 = dx * dx + dy * dy + dz * dz
+        if by_slack[i]:
+            if not moved2 < slack2[i]:  # NaN (never asked) or moved too far
+                need[i] = True
+                n_need += 1
+            continue
+        room = r_k[i] - math.sqrt(moved2)  # every unlisted map point is at least this far
         if not room > 0.0:
             need[i] = True
             n_need += 1
@@ -94,27 +108,9 @@ def _assign_lists(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarra
             if d2 < best:
                 best, best_j = d2, c
         d = math.sqrt(best)
-        if d < room - _MARGIN_M or (d >= far and room >= far):
+        if (d < room - _MARGIN_M and d < exact_within - _MARGIN_M) or (d >= far and room >= far):
             idx[i] = best_j
         else:
-            need[i] = True
-            n_need += 1
-    return n_need
-
-
-@numba.njit(cache=True)
-def _assign_slack(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray,
-                  ref: np.ndarray, slack2: np.ndarray, need: np.ndarray) -> int:
-    """Two-distance slack rule of ``icp``'s cache: a point keeps its row while it moved less than
-    its slack (``slack2``: the slack squared, 0 where it must be asked again)."""
-    n_need = 0
-    for i in range(P.shape[0]):
-        need[i] = False
-        if not finite[i]:
-            continue
-        qx, qy, qz = _transform(P, R, t, i)
-        dx, dy, dz = qx - ref[i, 0], qy - ref[i, 1], qz - ref[i, 2]
-        if not dx * dx + dy * dy + dz * dz < slack2[i]:
             need[i] = True
             n_need += 1
     return n_need
@@ -207,8 +203,8 @@ def register_point(scan: np.ndarray, map_index: MapIndex, T_init: np.ndarray, cf
 
     Args:
         scan: (N, 3) float64 scan points, sensor frame, metres (non-finite points are ignored).
-        map_index: the map (map frame); a plain ``MapIndex`` uses candidate lists, a subclass
-            with its own ``nearest2`` (KISS's) the two-distance slack.
+        map_index: the map (map frame); candidate lists where its ``nearest2`` is the exact
+            neighbour (``exact_within``), its own ``nearest2`` with the slack elsewhere.
         T_init: (4, 4) initial scan->map transform.
         cfg: the ICP settings (hard gate ``d_max``, no ``nn_reuse_m``).
 
@@ -227,7 +223,7 @@ def register_point(scan: np.ndarray, map_index: MapIndex, T_init: np.ndarray, cf
     bound = np.inf if cfg.d_max is None else float(cfg.d_max)
     c2 = np.inf if cfg.cauchy_c is None or cfg.kernel == "none" else float(cfg.cauchy_c) ** 2
     kernel = _KERNELS[cfg.kernel] if np.isfinite(c2) else 0
-    lists = type(map_index).nearest2 is MapIndex.nearest2
+    exact_within = float(map_index.exact_within)
     K = min(CANDIDATES, M)
     order = np.lexsort(np.floor(P).T[::-1])  # 1 m voxels: coherent tree searches (as ``icp``)
     ref = np.full((N, 3), np.nan)
@@ -235,23 +231,25 @@ def register_point(scan: np.ndarray, map_index: MapIndex, T_init: np.ndarray, cf
     need = np.zeros(N, dtype=bool)
     cand = np.full((N, K), M, dtype=np.int64)
     r_k = np.full(N, -np.inf)  # lists: every unlisted map point is at least this far from ref
+    by_slack = np.full(N, not exact_within > 0.0)  # rows by the map's own rule and slack
     slack2 = np.zeros(N)  # slack rule: squared distance a point may move with the same row
     H = np.zeros((6, 6))
     n_in, converged, iterations = 0, False, cfg.max_iterations
     eye6 = np.eye(6)
     for it in range(cfg.max_iterations):
-        if lists:
-            n_need = _assign_lists(P, finite, R, t, ref, cand, r_k, table, bound, idx, need)
-        else:
-            n_need = _assign_slack(P, finite, R, t, ref, slack2, need)
+        n_need = _assign(P, finite, R, t, ref, cand, r_k, by_slack, slack2, table, bound,
+                         exact_within, idx, need)
         if n_need:
             sel = order[need[order]]
             q = P[sel] @ R.T + t
             ref[sel] = q
-            if lists:
-                _search_lists(map_index, q, sel, K, cand, r_k, idx)
-            else:
-                _search_slack(map_index, q, sel, bound, slack2, idx)
+            own = np.ones(len(sel), dtype=bool)  # rows from the map's own rule
+            if exact_within > 0.0:
+                d1 = _search_lists(map_index, q, sel, K, cand, r_k, idx)
+                own = ~(d1 < exact_within)
+                by_slack[sel] = own
+            if own.any():
+                _search_slack(map_index, q[own], sel[own], bound, slack2, idx)
         H, g, n_in = _normal_equations(P, finite, R, t, idx, table, bound * bound, kernel, c2)
         lam = cfg.damping * np.trace(H) / 6.0 + 1e-12
         delta = -np.linalg.solve(H + lam * eye6, g)
@@ -266,8 +264,9 @@ def register_point(scan: np.ndarray, map_index: MapIndex, T_init: np.ndarray, cf
 
 
 def _search_lists(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, K: int,
-                  cand: np.ndarray, r_k: np.ndarray, idx: np.ndarray) -> None:
-    """Fresh K-nearest lists of the points ``sel`` at map-frame positions q (S, 3)."""
+                  cand: np.ndarray, r_k: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Fresh K-nearest lists of the points ``sel`` at map-frame positions q (S, 3); returns
+    their nearest distances (S,) (inf where the tree found nothing)."""
     M = len(map_index)
     rows, d2 = map_index.tree.batch_knn_search(np.ascontiguousarray(q), K,
                                                num_threads=map_index.workers)
@@ -280,6 +279,7 @@ def _search_lists(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, K: int,
     # the K-th distance bounds every unlisted point; a map of K points or fewer lists them all
     last = np.sqrt(d2[:, -1]) if M > K else np.full(len(sel), np.inf)
     r_k[sel] = np.where(bad[:, -1], -np.inf, last)  # an incomplete answer: ask again
+    return np.where(bad[:, 0], np.inf, np.sqrt(d2[:, 0]))
 
 
 def _search_slack(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, bound: float,

@@ -18,7 +18,7 @@ from icpbench.targets.p2point import PointToPointICP
 from icpbench.targets.point_forward import (
     CANDIDATES,
     CompiledPointICP,
-    _assign_lists,
+    _assign,
     _search_lists,
 )
 
@@ -104,7 +104,8 @@ def test_candidate_lists_name_the_exact_nearest_neighbour_or_ask_again():
     for step in (0.0, 0.05, 0.2, 0.6):
         t = rng.normal(size=3)
         t *= step / np.linalg.norm(t)
-        _assign_lists(P, finite, np.eye(3), t, ref, cand, r_k, table, bound, idx, need)
+        _assign(P, finite, np.eye(3), t, ref, cand, r_k, np.zeros(N, dtype=bool), np.zeros(N),
+                table, bound, np.inf, idx, need)
         q = P + t
         d = np.linalg.norm(q[:, None] - table[None], axis=2)
         ok = ~need

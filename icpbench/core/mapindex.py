@@ -21,6 +21,12 @@ from icpbench.core.errors import InputError
 class MapIndex:
     """Map points (M, 3), unit normals (M, 3) and a KD-tree over the points (map frame, metres)."""
 
+    #: :meth:`nearest2`'s row is the exact nearest map point (the KD-tree's) for every query
+    #: closer than this to it (metres); a subclass with a neighbour rule of its own lowers it
+    #: (KISS-ICP's replica map: one voxel), so that the compiled forward pass
+    #: (``targets/point_forward.py``) may answer such queries from its candidate lists.
+    exact_within: float = float("inf")
+
     def __init__(self, points: np.ndarray, normals: np.ndarray | None = None,
                  workers: int = 1) -> None:
         pts = np.ascontiguousarray(points, dtype=np.float64)
