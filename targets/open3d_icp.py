@@ -194,6 +194,16 @@ class Open3DICP(BlackBoxTarget):
 
         return (PointToPlaneICP if self.mode == "plane" else PointToPointICP)(self.config)
 
+    def exact_replica(self) -> Target | None:
+        """Point-to-point: Open3D's iteration replayed with compiled correspondences
+        (:class:`~icpbench.targets.open3d_point_replica.Open3DPointReplica`), which answers the
+        query attacks' registrations; point-to-plane: None."""
+        if self.mode != "point":
+            return None
+        from icpbench.targets.open3d_point_replica import Open3DPointReplica
+
+        return Open3DPointReplica(self.config, mode="point", threads=self.threads)
+
     # -- internals --------------------------------------------------------------------------
     def _relative_rmse(self) -> float:
         """Open3D's RMSE-change threshold standing in for our step tolerance (module docstring)."""

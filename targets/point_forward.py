@@ -214,43 +214,20 @@ def register_point(scan: np.ndarray, map_index: MapIndex, T_init: np.ndarray, cf
     """
     if cfg.soft_dmax or cfg.nn_reuse_m != 0:
         raise InputError("the compiled point-to-point pass has no soft gate and no nn_reuse_m")
-    N = scan.shape[0]
     finite = np.isfinite(scan).all(axis=1)
     P = np.ascontiguousarray(np.where(finite[:, None], scan, 0.0), dtype=np.float64)
     R, t = T_init[:3, :3].astype(np.float64), T_init[:3, 3].astype(np.float64)
-    table = np.ascontiguousarray(map_index.points, dtype=np.float64)
-    M = table.shape[0]
     bound = np.inf if cfg.d_max is None else float(cfg.d_max)
     c2 = np.inf if cfg.cauchy_c is None or cfg.kernel == "none" else float(cfg.cauchy_c) ** 2
     kernel = _KERNELS[cfg.kernel] if np.isfinite(c2) else 0
-    exact_within = float(map_index.exact_within)
-    K = min(CANDIDATES, M)
-    order = np.lexsort(np.floor(P).T[::-1])  # 1 m voxels: coherent tree searches (as ``icp``)
-    ref = np.full((N, 3), np.nan)
-    idx = np.full(N, M, dtype=np.int64)
-    need = np.zeros(N, dtype=bool)
-    cand = np.full((N, K), M, dtype=np.int64)
-    r_k = np.full(N, -np.inf)  # lists: every unlisted map point is at least this far from ref
-    by_slack = np.full(N, not exact_within > 0.0)  # rows by the map's own rule and slack
-    slack2 = np.zeros(N)  # slack rule: squared distance a point may move with the same row
+    rows = NearestRows(map_index, P, finite, bound)
     H = np.zeros((6, 6))
     n_in, converged, iterations = 0, False, cfg.max_iterations
     eye6 = np.eye(6)
     for it in range(cfg.max_iterations):
-        n_need = _assign(P, finite, R, t, ref, cand, r_k, by_slack, slack2, table, bound,
-                         exact_within, idx, need)
-        if n_need:
-            sel = order[need[order]]
-            q = P[sel] @ R.T + t
-            ref[sel] = q
-            own = np.ones(len(sel), dtype=bool)  # rows from the map's own rule
-            if exact_within > 0.0:
-                d1 = _search_lists(map_index, q, sel, K, cand, r_k, idx)
-                own = ~(d1 < exact_within)
-                by_slack[sel] = own
-            if own.any():
-                _search_slack(map_index, q[own], sel[own], bound, slack2, idx)
-        H, g, n_in = _normal_equations(P, finite, R, t, idx, table, bound * bound, kernel, c2)
+        idx = rows.update(R, t)
+        H, g, n_in = _normal_equations(P, finite, R, t, idx, rows.table, bound * bound,
+                                       kernel, c2)
         lam = cfg.damping * np.trace(H) / 6.0 + 1e-12
         delta = -np.linalg.solve(H + lam * eye6, g)
         R, t = _left_update(delta, R, t)
@@ -261,6 +238,55 @@ def register_point(scan: np.ndarray, map_index: MapIndex, T_init: np.ndarray, cf
     T[:3, :3], T[:3, 3] = R, t
     T[3] = T_init[3]
     return T, converged, iterations, n_in, H
+
+
+class NearestRows:
+    """The map row of every scan point across ICP iterations (module docstring): candidate lists
+    where the map's rule is the exact neighbour, the map's ``nearest2`` with the slack elsewhere.
+
+    Args:
+        map_index: the map (map frame).
+        P: (N, 3) float64 scan points (non-finite ones zeroed) the poses are applied to.
+        finite: (N,) which points count.
+        bound: the correspondence gate (metres; inf: none): beyond it a row only needs to be
+            known to be too far.
+    """
+
+    def __init__(self, map_index: MapIndex, P: np.ndarray, finite: np.ndarray,
+                 bound: float) -> None:
+        N = P.shape[0]
+        self.map_index, self.P, self.finite, self.bound = map_index, P, finite, float(bound)
+        self.table = np.ascontiguousarray(map_index.points, dtype=np.float64)
+        M = self.table.shape[0]
+        self.exact_within = float(map_index.exact_within)
+        self.K = min(CANDIDATES, M)
+        self.order = np.lexsort(np.floor(P).T[::-1])  # 1 m voxels: coherent tree searches
+        self.ref = np.full((N, 3), np.nan)  # where each point was last searched
+        self.idx = np.full(N, M, dtype=np.int64)  # its row (M: none)
+        self.need = np.zeros(N, dtype=bool)
+        self.cand = np.full((N, self.K), M, dtype=np.int64)
+        self.r_k = np.full(N, -np.inf)  # every unlisted map point is at least this far from ref
+        self.by_slack = np.full(N, not self.exact_within > 0.0)  # rows by the map's own rule
+        self.slack2 = np.zeros(N)  # squared distance a point may move with the same row
+
+    def update(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Rows (N,) int64 (M: none) of the points at the pose (R (3, 3), t (3,))."""
+        n_need = _assign(self.P, self.finite, R, t, self.ref, self.cand, self.r_k, self.by_slack,
+                         self.slack2, self.table, self.bound, self.exact_within, self.idx,
+                         self.need)
+        if n_need:
+            sel = self.order[self.need[self.order]]
+            q = self.P[sel] @ R.T + t
+            self.ref[sel] = q
+            own = np.ones(len(sel), dtype=bool)  # rows from the map's own rule
+            if self.exact_within > 0.0:
+                d1 = _search_lists(self.map_index, q, sel, self.K, self.cand, self.r_k, self.idx)
+                own = ~(d1 < self.exact_within)
+                self.by_slack[sel] = own
+            if own.any():
+                _search_slack(self.map_index, q[own], sel[own], self.bound, self.slack2,
+                              self.idx)
+        return self.idx
 
 
 def _search_lists(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, K: int,

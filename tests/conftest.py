@@ -73,3 +73,27 @@ def _load_script(name: str) -> ModuleType:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture
+def answers_as_target():
+    """``check(target, batch, budget_m, **ensemble_settings)``: the ensemble run twice, its
+    queries answered by the target and by ``target.exact_replica()``; asserts that every
+    member's error (to 1e-9 m) and the query counts are the same."""
+    import numpy as np
+
+    from icpbench.attacks.ensemble import EnsembleAttack, column
+    from icpbench.targets.oracle import QueryOracle
+
+    def check(target, batch, budget_m: float, **settings) -> None:
+        ens = EnsembleAttack(**settings)
+        by_target = QueryOracle.prepared(target, batch)
+        answered = QueryOracle.prepared(target, batch, answer_with=target.exact_replica())
+        a = ens.run(batch, budget_m, surrogate=None, generator=0, oracle=by_target)
+        b = ens.run(batch, budget_m, surrogate=None, generator=0, oracle=answered)
+        for m in settings["members"].split(","):
+            np.testing.assert_allclose(b.extra[column(m)].numpy(), a.extra[column(m)].numpy(),
+                                       rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(answered.queries, by_target.queries)
+
+    return check

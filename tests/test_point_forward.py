@@ -8,12 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from icpbench.attacks.ensemble import EnsembleAttack, column
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.types import Batch
 from icpbench.datasets.synthetic_scene import scene_sample
 from icpbench.targets.kiss_replica import KissICPReplica
-from icpbench.targets.oracle import QueryOracle
 from icpbench.targets.p2point import PointToPointICP
 from icpbench.targets.point_forward import (
     CANDIDATES,
@@ -117,15 +115,6 @@ def test_candidate_lists_name_the_exact_nearest_neighbour_or_ask_again():
     assert 0 < decided < 4 * N  # some decided, some asked again
 
 
-def test_queries_answered_by_the_compiled_pass_see_the_targets_errors(batch):
-    target = PointToPointICP("lidar")
-    members = ("uniform", "spoof", "valley")
-    ens = EnsembleAttack(members=",".join(members), spoof_queries=4, valley_queries=3)
-    by_target = QueryOracle.prepared(target, batch)
-    answered = QueryOracle.prepared(target, batch, answer_with=target.exact_replica())
-    a = ens.run(batch, 0.5, surrogate=None, generator=0, oracle=by_target)
-    b = ens.run(batch, 0.5, surrogate=None, generator=0, oracle=answered)
-    for m in members:
-        np.testing.assert_allclose(b.extra[column(m)].numpy(), a.extra[column(m)].numpy(),
-                                   rtol=0, atol=1e-9)
-    np.testing.assert_array_equal(answered.queries, by_target.queries)
+def test_queries_answered_by_the_compiled_pass_see_the_targets_errors(batch, answers_as_target):
+    answers_as_target(PointToPointICP("lidar"), batch, 0.5, members="uniform,spoof,valley",
+                      spoof_queries=4, valley_queries=3)
