@@ -11,7 +11,9 @@ corruption), registered from the scan's initial guess. Phases, each on the same 
 * ``kiss``: KISS-ICP itself (500-iteration cap); ``kiss-replica``: its PyTorch replica;
   ``kiss-compiled``: the replica's compiled forward pass (what answers KISS's queries);
 * ``p2point``: the PyTorch point-to-point ICP; ``p2point-compiled``: its compiled forward pass
-  (what answers its queries).
+  (what answers its queries);
+* ``open3d-point``: Open3D's point-to-point ICP (the ``open3d-p2point`` variant's settings);
+  ``open3d-point-replay``: its compiled replay (what answers its queries).
 
 Every round gets a new scan, so nothing measured is a cache hit (the forward-pass cache is off as
 well: ``benchmarks/conftest.py``). Each phase prints its ratio to the fixed Open3D reference
@@ -32,13 +34,15 @@ from reference import open3d_icp  # benchmarks/reference.py (pytest puts benchma
 from icpbench.core import registry
 from icpbench.core.types import Batch
 from icpbench.targets.kiss import KissICPTarget
+from icpbench.targets.open3d_icp import Open3DICP
 from icpbench.targets.p2point import PointToPointICP
 
 #: The query's budget (metres) and the timed rounds per phase.
 BUDGET_M, ROUNDS = 1.0, 7
 #: phase -> the phase whose poses it must reproduce (None: a target itself)
 PHASES = {"kiss": None, "kiss-replica": "kiss", "kiss-compiled": "kiss",
-          "p2point": None, "p2point-compiled": "p2point"}
+          "p2point": None, "p2point-compiled": "p2point",
+          "open3d-point": None, "open3d-point-replay": "open3d-point"}
 _MEDIAN: dict[str, float] = {}  # phase -> median seconds in this run
 
 
@@ -51,13 +55,17 @@ def _problem() -> dict[str, object]:
     kiss, p2point = KissICPTarget("lidar"), PointToPointICP("lidar")
     kiss_compiled, p2point_compiled = kiss.exact_replica(), p2point.exact_replica()
     kiss_compiled.of.kiss_map(batch.maps[0])
-    kiss_map = kiss.prepare(sample.map, sample.map_normals)
+    open3d = Open3DICP("lidar", mode="point")
+    own_maps = {"kiss": (kiss, kiss.prepare(sample.map, sample.map_normals)),
+                "open3d-point": (open3d, open3d.prepare(sample.map, sample.map_normals))}
     on_batch = {"kiss-replica": kiss_compiled.of, "kiss-compiled": kiss_compiled,
-                "p2point": p2point, "p2point-compiled": p2point_compiled}
+                "p2point": p2point, "p2point-compiled": p2point_compiled,
+                "open3d-point-replay": open3d.exact_replica()}
 
     def register(phase: str, scans: torch.Tensor):
-        if phase == "kiss":
-            return kiss.register(scans, [kiss_map], batch.T_init)
+        if phase in own_maps:
+            target, prepared = own_maps[phase]
+            return target.register(scans, [prepared], batch.T_init)
         with torch.no_grad():
             return on_batch[phase].register(scans, batch.maps, batch.T_init)
 
