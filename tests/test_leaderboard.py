@@ -249,8 +249,16 @@ def test_a_new_protocol_version_carries_over_only_the_runs_it_would_compute_agai
     # a rewrite without the option keeps the record
     assert runner.invoke(app, [*args, "--out", str(new)]).exit_code == 0
     assert list(json.loads((new / "manifest.json").read_text())["carried_over"]) == ["p2point"]
-    # a carried-over run deleted and computed again is no longer carried over
+    # ... and so does a command that ranks only another variant
+    only_kiss = [a if a != "p2point,kiss-icp" else "kiss-icp" for a in args]
+    assert runner.invoke(app, [*only_kiss, "--out", str(new)]).exit_code == 0
+    assert list(json.loads((new / "manifest.json").read_text())["carried_over"]) == ["p2point"]
+    # a carried-over run deleted and computed again, by a command of its own, is no longer
+    # carried over on the next rewrite
     shutil.rmtree(new / "runs" / "p2point")
+    only_p2point = [a if a != "p2point,kiss-icp" else "p2point" for a in args]
+    assert runner.invoke(app, [*only_p2point, "--out", str(new)]).exit_code == 0
+    assert json.loads((new / "manifest.json").read_text())["carried_over"] == {}
     assert runner.invoke(app, [*args, "--out", str(new)]).exit_code == 0
     assert json.loads((new / "manifest.json").read_text())["carried_over"] == {}
     assert "Carried over" not in (new / "leaderboard.md").read_text()

@@ -315,8 +315,8 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     runs: dict[str, Path] = {}
     skipped: dict[str, str] = {}
     for k, v in enumerate(variants, 1):
-        if not (out / "runs" / v.slug).exists():  # computed here, not carried over
-            carried.pop(v.label, None)
+        if not still_carried(carried.get(v.label), out / "runs" / v.slug):
+            carried.pop(v.label, None)  # computed here (now or by an earlier command)
         rc = cfg.run_config(v)
         try:
             rc.validate()
@@ -349,8 +349,23 @@ def run_leaderboard(cfg: LeaderboardConfig, out_dir: str | Path, *, progress: bo
     board.attrs["not_ranked"] = {**skipped, **board.attrs.get("not_ranked", {})}
     board.attrs["runs"] = {k: str(v) for k, v in runs.items()}
     board.attrs["carried_over"] = {k: v for k, v in carried.items() if k in runs}
+    board.attrs["carried_record"] = carried  # also of variants this command did not rank
     write_board(board, out, cfg, board.attrs["not_ranked"], compare_with=compare_with)
     return board
+
+
+def still_carried(entry: Mapping[str, Any] | None, run_dir: Path) -> bool:
+    """Whether the run in ``run_dir`` is still the one a board carried over (``entry``: its
+    ``carried_over`` record, ``from`` the source run's folder): it exists and its ``provenance``
+    (the commits and start times of the commands that made its rows) is the source run's. A run
+    deleted and computed again, by this command or an earlier one, is not. A source that is no
+    longer there cannot be compared; the record is kept."""
+    if entry is None or not run_dir.exists():
+        return False
+    source = read_manifest(Path(entry.get("from", "")))
+    if source is None:
+        return True
+    return (read_manifest(run_dir) or {}).get("provenance") == source.get("provenance")
 
 
 def gradient_blind_reason(rc: RunConfig) -> str | None:
@@ -904,7 +919,7 @@ def write_board(board: pd.DataFrame, out: Path, cfg: LeaderboardConfig,
         "kind": BOARD_KIND, "protocol": cfg.protocol().as_dict(),
         "config": asdict(cfg), "variants": [asdict(v) for v in cfg.resolve()],
         "skipped": skipped, "extra_not_run": board.attrs.get("extra_not_run", {}),
-        "carried_over": carried,
+        "carried_over": board.attrs.get("carried_record", carried),
         "standard_variants_missing": cfg.missing_standard(),
         # the commit that wrote this board; those that made each variant's rows:
         "rows_made_by": {label: commits_of(row_makers(path))
