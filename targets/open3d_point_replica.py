@@ -92,6 +92,13 @@ def _matches(P: np.ndarray, idx: np.ndarray, table: np.ndarray, bound2: float
     return n, err2, ok, src, dst, sigma / n
 
 
+def _match(P: np.ndarray, rows: NearestRows, bound: float
+           ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Open3D's matches of the moved points P (N, 3) (``rows`` tracks them at the identity pose,
+    since P itself is moved): :func:`_matches` of their nearest rows within the gate ``bound``."""
+    return _matches(P, rows.update(np.eye(3), np.zeros(3)), rows.table, bound * bound)
+
+
 def _rigid_fit(n: int, src: np.ndarray, dst: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """Umeyama's rigid transform (4, 4) taking the matched scan points onto the map points
     (identity without matches)."""
@@ -131,20 +138,16 @@ class Open3DPointReplica(Open3DICP):
         if not np.allclose(T0, np.eye(4), rtol=0.0, atol=_IDENTITY_PRECISION):
             _move(P, T0)
         rows = NearestRows(target, P, np.ones(len(P), dtype=bool), bound)
-        I3, zero = np.eye(3), np.zeros(3)
         n_pts = len(P)
 
-        def result() -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-            return _matches(P, rows.update(I3, zero), rows.table, bound * bound)
-
         T = T0.copy()
-        n, err2, ok, src, dst, sigma = result()
+        n, err2, ok, src, dst, sigma = _match(P, rows, bound)
         fitness, rmse = n / n_pts, (np.sqrt(err2 / n) if n else 0.0)
         for _ in range(cfg.max_iterations):
             step = _rigid_fit(n, src, dst, sigma)
             T = step @ T
             _move(P, step)
-            n, err2, ok, src, dst, sigma = result()
+            n, err2, ok, src, dst, sigma = _match(P, rows, bound)
             f_new, r_new = n / n_pts, (np.sqrt(err2 / n) if n else 0.0)
             done = (abs(fitness - f_new) < RELATIVE_FITNESS
                     and abs(rmse - r_new) < self._relative_rmse())
@@ -156,15 +159,10 @@ class Open3DPointReplica(Open3DICP):
         # the target's convergence proxy: one more Open3D iteration from T
         P = np.array(scan, dtype=np.float64)
         _move(P, T)
-        rows = NearestRows(target, P, np.ones(len(P), dtype=bool), bound)
-        T_extra = _rigid_fit(*_pick(result())) @ T
+        m, _, _, m_src, m_dst, m_sigma = _match(
+            P, NearestRows(target, P, np.ones(len(P), dtype=bool), bound), bound)
+        T_extra = _rigid_fit(m, m_src, m_dst, m_sigma) @ T
         q = scan[ok] @ T[:3, :3].T + T[:3, 3]
         return OneResult(T, increment_norm(T, T_extra) < cfg.tol, -1, n,
                          point_to_point_hessian(q))
 
-
-def _pick(res: tuple[int, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-          ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-    """The rigid fit's inputs (count, means, cross-covariance) of a :func:`_matches` result."""
-    n, _, _, src, dst, sigma = res
-    return n, src, dst, sigma
