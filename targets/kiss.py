@@ -165,6 +165,7 @@ class VoxelNeighbours:
         self.keys, self.start, self.count = np.unique(codes[order], return_index=True,
                                                       return_counts=True)
         self.order = order
+        self.stored = np.ascontiguousarray(self.points[order])  # (K, 3) in voxel order
 
     @staticmethod
     def _codes(v: np.ndarray) -> np.ndarray:

@@ -67,6 +67,7 @@ class KissReplicaMap(MapIndex):
         self.voxel_size = float(voxel_size)
         self.max_corr = float(max_corr)
         self.exact_within = self.voxel_size  # the 27 voxels hold every point within one voxel
+        self.voxel_search = self.search
 
     def nearest2(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """KISS's neighbour row of each query (K, 3), with distances (d1, d2) whose half gap

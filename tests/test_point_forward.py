@@ -11,6 +11,7 @@ import torch
 from icpbench.core.mapindex import MapIndex
 from icpbench.core.types import Batch
 from icpbench.datasets.synthetic_scene import scene_sample
+from icpbench.targets.kiss import VoxelNeighbours
 from icpbench.targets.kiss_replica import KissICPReplica
 from icpbench.targets.p2point import PointToPointICP
 from icpbench.targets.point_forward import (
@@ -18,6 +19,7 @@ from icpbench.targets.point_forward import (
     CompiledPointICP,
     _assign,
     _search_lists,
+    _voxel_rows,
 )
 
 
@@ -113,6 +115,42 @@ def test_candidate_lists_name_the_exact_nearest_neighbour_or_ask_again():
         assert np.all(d[ok & ~near].min(axis=1) >= bound)  # decided "no correspondence": right
         decided += ok.sum()
     assert 0 < decided < 4 * N  # some decided, some asked again
+
+
+def test_compiled_voxel_rule_is_kiss_s_search_and_holds_within_its_slack():
+    """KISS's 27-voxel neighbour, compiled, names the NumPy search's row (the first of equal
+    ones: every map point twice), and a point moved by less than its slack keeps that row (or,
+    with its exact neighbour beyond the gate, stays beyond it)."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-5, 5, size=(1_500, 3))
+    table = np.concatenate([pts, pts])  # ties: the first in the search's order wins
+    vox = VoxelNeighbours(table, 0.7)
+    N, bound = 40_000, 1.5
+    q = rng.uniform(-7, 7, size=(N, 3))
+    exact = MapIndex(table)
+    d1 = exact.query(q)[0]
+    q, d1 = q[d1 >= 0.7], d1[d1 >= 0.7]  # the rule answers points a voxel or more away
+    n = len(q)
+    idx, slack2 = np.full(n, -1, dtype=np.int64), np.full(n, np.nan)
+    _voxel_rows(q, np.arange(n), d1, vox.keys, vox.start, vox.count, vox.order, vox.stored,
+                vox.voxel_size, bound, idx, slack2)
+    gated = d1 > bound
+    assert 0 < gated.sum() < n
+    np.testing.assert_array_equal(idx[~gated], vox.query(q[~gated])[1])
+    assert np.all(slack2 >= 0) and np.mean(slack2 > 0) > 0.5
+    for share in (0.3, 0.99):
+        step = rng.normal(size=(n, 3))
+        step *= (share * np.sqrt(slack2) / np.linalg.norm(step, axis=1))[:, None]
+        moved = q + step
+        np.testing.assert_array_equal(vox.query(moved[~gated])[1], idx[~gated])
+        assert np.all(exact.query(moved[gated])[0] > bound)
+    # leaving the voxel changes the 27 voxels: B (exact, 1.15 m) enters them, A (1.3 m) is KISS's
+    one = VoxelNeighbours(np.array([[0.9, 0.5, -0.8], [2.05, 0.5, 0.5]]), 1.0)
+    idx, slack2 = np.full(1, -1, dtype=np.int64), np.full(1, np.nan)
+    _voxel_rows(np.array([[0.9, 0.5, 0.5]]), np.arange(1), np.array([1.15]), one.keys, one.start,
+                one.count, one.order, one.stored, 1.0, bound, idx, slack2)
+    assert idx[0] == 0 and np.sqrt(slack2[0]) < 0.1 + 1e-12  # the voxel's face at x = 1
+    assert one.query(np.array([[1.05, 0.5, 0.5]]))[1][0] == 1
 
 
 def test_queries_answered_by_the_compiled_pass_see_the_targets_errors(batch, answers_as_target):

@@ -26,6 +26,10 @@ class MapIndex:
     #: (KISS-ICP's replica map: one voxel), so that the compiled forward pass
     #: (``targets/point_forward.py``) may answer such queries from its candidate lists.
     exact_within: float = float("inf")
+    #: A voxel neighbour rule of KISS-ICP's kind (:class:`~icpbench.targets.kiss.VoxelNeighbours`)
+    #: that :meth:`nearest2` answers by beyond ``exact_within``, for the compiled forward pass to
+    #: run itself; None: :meth:`nearest2` only.
+    voxel_search: Any = None
 
     def __init__(self, points: np.ndarray, normals: np.ndarray | None = None,
                  workers: int = 1) -> None:
