@@ -28,7 +28,9 @@ for a map that names its voxel search, ``MapIndex.voxel_search``), or else the m
 Only forward passes: no gradient, no ``nn_reuse_m``, the hard gate, float64 scans. The class
 :class:`CompiledPointICP` wraps a differentiable point-to-point target as its exact replica
 (``Target.exact_replica``), so only queries go through here; every reported row is still the
-target's own registration.
+target's own registration. The differentiable point-to-point ICP itself takes its rows from
+:class:`NearestRows` too (``icp``'s correspondence search with ``lists``: the same rows, fewer
+searches), which is what the gradient attacks' surrogate registrations gain.
 """
 
 from __future__ import annotations
@@ -70,9 +72,11 @@ def _transform(P: np.ndarray, R: np.ndarray, t: np.ndarray, i: int) -> tuple[flo
 def _assign(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray, ref: np.ndarray,
             cand: np.ndarray, r_k: np.ndarray, by_slack: np.ndarray, slack2: np.ndarray,
             table: np.ndarray, bound: float, exact_within: float, idx: np.ndarray,
-            need: np.ndarray) -> int:
+            need: np.ndarray, Q: np.ndarray | None = None) -> int:
     """Set idx (N,) where a point's row is decided without a search, else need (N,) True;
-    returns the number of points to search again (module docstring).
+    returns the number of points to search again (module docstring). The points are P (N, 3)
+    at the pose (R, t), or, if given, at the map-frame positions Q (3, N) (as rows of
+    coordinates).
 
     A point ``by_slack`` keeps its row while it moved less than its slack (``slack2``: squared;
     0: ask again). The others take the nearest of their K listed map points ``cand`` (N, K) when
@@ -86,7 +90,10 @@ def _assign(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray, ref
         need[i] = False
         if not finite[i]:
             continue
-        qx, qy, qz = _transform(P, R, t, i)
+        if Q is None:
+            qx, qy, qz = _transform(P, R, t, i)
+        else:
+            qx, qy, qz = Q[0, i], Q[1, i], Q[2, i]
         dx, dy, dz = qx - ref[i, 0], qy - ref[i, 1], qz - ref[i, 2]
         moved2 = dx * dx + dy * dy + dz * dz
         if by_slack[i]:
@@ -272,6 +279,8 @@ class NearestRows:
         # KISS's 27-voxel rule, compiled (_voxel_rows), where the map has one and lists decide
         # the exact neighbour within a voxel; otherwise the map's own nearest2
         self.voxels = map_index.voxel_search if self.exact_within > 0.0 else None
+        self.searched = 0  # points searched again (for profiling)
+        self._eye, self._zero = np.eye(3), np.zeros(3)  # (unused with positions)
 
     def update(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Rows (N,) int64 (M: none) of the points at the pose (R (3, 3), t (3,))."""
@@ -280,21 +289,37 @@ class NearestRows:
                          self.need)
         if n_need:
             sel = self.order[self.need[self.order]]
-            q = self.P[sel] @ R.T + t
-            self.ref[sel] = q
-            own = np.ones(len(sel), dtype=bool)  # rows from the map's own rule
-            if self.exact_within > 0.0:
-                d1 = _search_lists(self.map_index, q, sel, self.K, self.cand, self.r_k, self.idx)
-                own = ~(d1 < self.exact_within)
-                self.by_slack[sel] = own
-            if own.any() and self.voxels is not None:
-                v = self.voxels
-                _voxel_rows(q[own], sel[own], d1[own], v.keys, v.start, v.count, v.order,
-                            v.stored, v.voxel_size, self.bound, self.idx, self.slack2)
-            elif own.any():
-                _search_slack(self.map_index, q[own], sel[own], self.bound, self.slack2,
-                              self.idx)
+            self._search(sel, self.P[sel] @ R.T + t)
         return self.idx
+
+    def update_at(self, Q: np.ndarray) -> np.ndarray:
+        """Rows (N,) int64 (M: none) of the points at map-frame positions Q (3, N) float64."""
+        n_need = _assign(self.P, self.finite, self._eye, self._zero, self.ref, self.cand,
+                         self.r_k, self.by_slack, self.slack2, self.table, self.bound,
+                         self.exact_within, self.idx, self.need, Q)
+        if n_need:
+            sel = self.order[self.need[self.order]]
+            self._search(sel, np.ascontiguousarray(Q[:, sel].T))
+        return self.idx
+
+    def _search(self, sel: np.ndarray, q: np.ndarray) -> None:
+        """Search the points ``sel`` (S,) again at their map-frame positions q (S, 3)."""
+        self.ref[sel] = q
+        self.searched += len(sel)
+        if not self.exact_within > 0.0:  # the map's own rule everywhere
+            _search_slack(self.map_index, q, sel, self.bound, self.slack2, self.idx)
+            return
+        d1 = _search_lists(self.map_index, q, sel, self.K, self.cand, self.r_k, self.idx)
+        own = ~(d1 < self.exact_within)  # rows from the map's own rule
+        self.by_slack[sel] = own
+        if not own.any():
+            return
+        if self.voxels is not None:
+            v = self.voxels
+            _voxel_rows(q[own], sel[own], d1[own], v.keys, v.start, v.count, v.order, v.stored,
+                        v.voxel_size, self.bound, self.idx, self.slack2)
+        else:
+            _search_slack(self.map_index, q[own], sel[own], self.bound, self.slack2, self.idx)
 
 
 def _search_lists(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, K: int,

@@ -284,6 +284,78 @@ def test_icp_result_does_not_depend_on_the_far_point_rule(monkeypatch):
     assert torch.equal(with_rule.iterations, without.iterations)
 
 
+def test_candidate_lists_name_the_nearest_row_within_the_bound_and_search_less():
+    """The correspondence search with candidate lists: after any sequence of moves every point
+    within the bound has its true nearest map point, every stale row lies beyond the bound, and
+    fewer points are searched than with the slack alone; lists refuse ``nn_reuse_m``."""
+    from icpbench.core.mapindex import MapIndex
+    from icpbench.targets.icp import _Correspondences
+
+    rng = np.random.default_rng(5)
+    s = scene_sample(2_000, 5_000, seed=4)
+    maps = [MapIndex(s.map, s.map_normals)] * 2
+    p = torch.as_tensor(np.stack([s.scan, s.scan[::-1]]) + rng.normal(0, 1.0, (2, 2_000, 3)))
+    p[1, :5] = float("nan")
+    finite = torch.isfinite(p).all(-1)
+    p = torch.nan_to_num(p)
+    bound = 1.0
+    nn = _Correspondences(maps, p, finite, torch.float64, bound=bound, lists=True)
+    plain = _Correspondences(maps, p, finite, torch.float64, bound=bound)
+    q = p.transpose(1, 2).contiguous()
+    for step in (0.3, 1e-3, 0.05, 1e-4, 0.5, 1e-2):
+        q = q + torch.as_tensor(rng.normal(0, step, (2, 3, 1)) + rng.normal(0, step / 10, q.shape))
+        got = nn.update(q, torch.ones(2, dtype=torch.bool)).numpy()
+        plain.update(q, torch.ones(2, dtype=torch.bool))
+        for b in range(2):
+            f = finite[b].numpy()
+            dist, want = maps[b].query(q[b].T.numpy())
+            rows = got[b] - nn.offsets[b]
+            near = f & (dist < bound)
+            assert np.array_equal(rows[near], want[near])
+            far = f & ~near
+            assert (np.linalg.norm(s.map[rows[far]] - q[b].T.numpy()[far], axis=1) > bound).all()
+            assert (rows[~f] == len(maps[b])).all() and not nn.found[b, ~f].any()
+    assert 0 < nn.queried < plain.queried
+    with pytest.raises(InputError, match="nn_reuse_m"):
+        _Correspondences(maps, p, finite, torch.float64, reuse=0.05, lists=True)
+
+
+@pytest.mark.parametrize("kiss", [False, True])
+def test_candidate_lists_give_the_same_registration_and_gradient(monkeypatch, kiss):
+    """Point-to-point ICP (and KISS-ICP's replica, with its voxel rule) registers an attacked
+    scan to the same pose, iterations and scan gradient with the candidate lists as with the
+    slack search alone."""
+    import icpbench.targets.icp as icp_mod
+    from icpbench.targets.kiss_replica import KissICPReplica
+    from icpbench.targets.point_forward import NearestRows
+
+    s = scene_sample(2_000, 8_000, seed=6)
+    rng = np.random.default_rng(1)
+    scan = s.scan.copy()
+    lift = rng.random(len(scan)) < 0.4
+    scan[lift] += rng.uniform(0.1, 0.9, (lift.sum(), 1)) * np.array([0.6, 0.8, 0.0])
+    batch = Batch.from_samples([s])
+    target = KissICPReplica("lidar") if kiss else PointToPointICP("lidar")
+    calls = []
+    real = NearestRows.update_at
+    monkeypatch.setattr(NearestRows, "update_at", lambda self, Q: calls.append(1) or real(self, Q))
+
+    def run():
+        x = torch.as_tensor(scan[None]).requires_grad_(True)
+        reg = target.register(x, batch.maps, batch.T_init)
+        (g,) = torch.autograd.grad(reg.T[:, :3, 3].norm(), x)
+        return reg, g
+
+    with_lists, g_lists = run()
+    assert calls  # the lists decided
+    monkeypatch.setattr(icp_mod, "_lists", lambda cfg, mode: False)
+    n = len(calls)
+    slack, g_slack = run()
+    assert len(calls) == n
+    assert torch.equal(with_lists.T, slack.T) and torch.equal(g_lists, g_slack)
+    assert torch.equal(with_lists.iterations, slack.iterations)
+
+
 @pytest.mark.parametrize("kernel", ["cauchy", "huber", "geman_mcclure"])
 def test_plane_backward_matches_autograd_of_the_formula(kernel):
     """The hand-written backward of the point-to-plane normal equations equals autograd of the
