@@ -165,6 +165,34 @@ def test_the_lines_climbs_add_up_to_the_cost_between_its_ends_at_any_number_of_s
     np.testing.assert_allclose(climbs.sum(axis=1), (ends[1::2] - ends[0::2]), atol=1e-12)
 
 
+def test_the_climbs_skip_lookups_beyond_the_gate_and_equal_every_step_looked_up():
+    # points far off the street: a step whose predecessor lay more than a step beyond the gate is
+    # not looked up, and the climbs equal, to the bit, those with every step looked up
+    m, n = _street()
+    cost = CostSpec("point", d_max=1.0, cauchy_c=0.5)
+    rng = np.random.default_rng(0)
+    p_map = np.concatenate([m[::3] + np.array([0.0, -0.4, 0.1]),
+                            rng.uniform(-12, 12, (300, 3)) + np.array([0.0, -8.0, 0.0])])
+    D = np.array([1.5, 0.5, 0.0])
+    cand = candidates(p_map, D, MapIndex(m, n), 0.6)
+
+    class Counted(MapIndex):
+        asked = 0
+
+        def query(self, q, max_dist=np.inf):
+            Counted.asked += len(q)
+            return super().query(q, max_dist)
+
+    index = Counted(m)
+    climbs = line_climbs(p_map, cand, D, index, cost, 4)
+    a = np.arange(5) / 4
+    q = (p_map[None, None] + cand[:, None] + a[None, :, None, None] * D)
+    every = np.diff(rho(MapIndex(m).query(q.reshape(-1, 3))[0], cost).reshape(len(cand), 5, -1),
+                    axis=1)
+    assert np.array_equal(climbs, every) and climbs.flags.c_contiguous
+    assert 0 < Counted.asked < 0.9 * q.size // 3
+
+
 def test_valley_plans_on_its_line_steps_and_refuses_bad_ones(scene_pair):
     with pytest.raises(InputError, match="line_steps"):
         ValleyAttack(line_steps=0)
