@@ -396,20 +396,22 @@ class _Correspondences:
         self.offsets = np.asarray(offsets, dtype=np.int64)
         self.finite = finite.numpy()
         p_np = p.to(torch.float64).numpy()
-        self.orders = [np.lexsort(np.floor(p_np[b] / 1.0).T[::-1]) for b in range(B)]
+        self.lists = None
+        if lists:  # the compiled pass's candidate lists decide the same rows (imported late:
+            # that module imports this one); they keep the same coherent order
+            from icpbench.targets.point_forward import NearestRows
+
+            self.lists = [NearestRows(m, np.ascontiguousarray(p_np[b]), self.finite[b], self.bound)
+                          for b, m in enumerate(maps)]
+            self.orders = [rows.order for rows in self.lists]
+        else:
+            self.orders = [np.lexsort(np.floor(p_np[b] / 1.0).T[::-1]) for b in range(B)]
         sentinel = np.asarray([off_b + len(m) for off_b, m in zip(offsets, maps, strict=True)])
         self.idx = np.repeat(sentinel[:, None], N, axis=1)  # (B, N) rows of the table
         self.ref = np.full((B, 3, N), np.nan)  # where each point was last queried
         self.slack = np.full((B, N), -np.inf)  # how far it may move from there
         self.found = np.zeros((B, N), dtype=bool)  # the tree returned a neighbour
         self.queried = 0  # points sent to the KD-tree (for profiling)
-        self.lists = None
-        if lists:  # the compiled pass's candidate lists decide the same rows (imported late:
-            # that module imports this one)
-            from icpbench.targets.point_forward import NearestRows
-
-            self.lists = [NearestRows(m, np.ascontiguousarray(p_np[b]), self.finite[b], self.bound)
-                          for b, m in enumerate(maps)]
 
     def update(self, q: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
         """Nearest-neighbour rows (B, N) int64 of the table for map-frame points q (B, 3, N)

@@ -364,7 +364,7 @@ def _voxel_rows(q: np.ndarray, sel: np.ndarray, d1: np.ndarray, keys: np.ndarray
     """
     K = stored.shape[0]
     V = keys.shape[0]
-    off = 1 << 20
+    off = 1 << 20  # the voxel code of VoxelNeighbours._codes: (x + off) << 42 | (y + off) << 21 | ...
     far = bound * (1.0 + _FAR_MARGIN)
     for s in range(sel.shape[0]):
         i = sel[s]
