@@ -72,7 +72,9 @@ def _transform(P: np.ndarray, R: np.ndarray, t: np.ndarray, i: int) -> tuple[flo
 def _assign(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray, ref: np.ndarray,
             cand: np.ndarray, r_k: np.ndarray, by_slack: np.ndarray, slack2: np.ndarray,
             table: np.ndarray, bound: float, exact_within: float, idx: np.ndarray,
-            need: np.ndarray, Q: np.ndarray | None = None) -> int:
+            need: np.ndarray, low: np.ndarray, keys: np.ndarray, start: np.ndarray,
+            count: np.ndarray, order: np.ndarray, stored: np.ndarray, voxel: float,
+            Q: np.ndarray | None = None) -> int:
     """Set idx (N,) where a point's row is decided without a search, else need (N,) True;
     returns the number of points to search again (module docstring). The points are P (N, 3)
     at the pose (R, t), or, if given, at the map-frame positions Q (3, N) (as rows of
@@ -82,7 +84,17 @@ def _assign(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray, ref
     0: ask again). The others take the nearest of their K listed map points ``cand`` (N, K) when
     it is nearer than every unlisted one (at least ``r_k - moved``) and than ``exact_within``
     (where the map's rule is the exact neighbour), or when all of them lie beyond the gate
-    ``bound``."""
+    ``bound``.
+
+    With KISS's voxel map (``voxel`` > 0: its ``keys``, ``start``, ``count``, ``order`` and
+    ``stored``, as :func:`_voxel_rows` takes them), a point on the map's own rule that moved past
+    its slack is answered here, without a tree search, while ``low`` (N,), a lower bound of its
+    exact nearest distance at ``ref``, less the way it moved, still puts it a voxel
+    (``exact_within``) or more from the map: there the map's rule is KISS's voxel rule
+    (:func:`_voxel_nearest`), or beyond the gate no row counts. The rows are those of the search
+    (tests compare); ``low`` then becomes the larger of that bound and the one the 27 voxels give
+    (every map point outside them is at least a voxel plus the distance to the voxel's faces
+    away)."""
     N, K, M = P.shape[0], cand.shape[1], table.shape[0]
     far = bound * (1.0 + _FAR_MARGIN)
     n_need = 0
@@ -97,9 +109,24 @@ def _assign(P: np.ndarray, finite: np.ndarray, R: np.ndarray, t: np.ndarray, ref
         dx, dy, dz = qx - ref[i, 0], qy - ref[i, 1], qz - ref[i, 2]
         moved2 = dx * dx + dy * dy + dz * dz
         if by_slack[i]:
-            if not moved2 < slack2[i]:  # NaN (never asked) or moved too far
-                need[i] = True
-                n_need += 1
+            if moved2 < slack2[i]:
+                continue
+            lo = low[i] - math.sqrt(moved2) - _MARGIN_M  # NaN (never asked): search
+            if voxel > 0.0 and lo >= exact_within:
+                ref[i, 0], ref[i, 1], ref[i, 2] = qx, qy, qz
+                if lo > bound:  # the far rule: the row (whichever) stays gated
+                    slack = lo - far
+                    slack2[i] = slack * slack if slack > 0.0 else 0.0
+                    low[i] = lo
+                    continue
+                best, second, at, wall = _voxel_nearest(qx, qy, qz, keys, start, count, stored,
+                                                        voxel)
+                idx[i] = order[at] if at >= 0 else stored.shape[0]
+                slack2[i] = _voxel_slack2(best, second, wall)
+                low[i] = max(lo, min(math.sqrt(best), voxel + wall))
+                continue
+            need[i] = True
+            n_need += 1
             continue
         room = r_k[i] - math.sqrt(moved2)  # every unlisted map point is at least this far
         if not room > 0.0:
@@ -279,6 +306,12 @@ class NearestRows:
         # KISS's 27-voxel rule, compiled (_voxel_rows), where the map has one and lists decide
         # the exact neighbour within a voxel; otherwise the map's own nearest2
         self.voxels = map_index.voxel_search if self.exact_within > 0.0 else None
+        self.low = np.full(N, np.nan)  # a lower bound of the exact nearest distance at ref
+        v = self.voxels  # _assign's voxel rule: the map's arrays, or none (voxel 0)
+        self._voxel_args = ((v.keys, v.start, v.count, v.order, v.stored, float(v.voxel_size))
+                            if v is not None else
+                            (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                             np.zeros(0, np.int64), np.zeros((0, 3)), 0.0))
         self.searched = 0  # points searched again (for profiling)
         self._eye, self._zero = np.eye(3), np.zeros(3)  # (unused with positions)
 
@@ -286,7 +319,7 @@ class NearestRows:
         """Rows (N,) int64 (M: none) of the points at the pose (R (3, 3), t (3,))."""
         n_need = _assign(self.P, self.finite, R, t, self.ref, self.cand, self.r_k, self.by_slack,
                          self.slack2, self.table, self.bound, self.exact_within, self.idx,
-                         self.need)
+                         self.need, self.low, *self._voxel_args)
         if n_need:
             sel = self.order[self.need[self.order]]
             self._search(sel, self.P[sel] @ R.T + t)
@@ -296,7 +329,7 @@ class NearestRows:
         """Rows (N,) int64 (M: none) of the points at map-frame positions Q (3, N) float64."""
         n_need = _assign(self.P, self.finite, self._eye, self._zero, self.ref, self.cand,
                          self.r_k, self.by_slack, self.slack2, self.table, self.bound,
-                         self.exact_within, self.idx, self.need, Q)
+                         self.exact_within, self.idx, self.need, self.low, *self._voxel_args, Q)
         if n_need:
             sel = self.order[self.need[self.order]]
             self._search(sel, np.ascontiguousarray(Q[:, sel].T))
@@ -310,15 +343,13 @@ class NearestRows:
             _search_slack(self.map_index, q, sel, self.bound, self.slack2, self.idx)
             return
         d1 = _search_lists(self.map_index, q, sel, self.K, self.cand, self.r_k, self.idx)
+        if self.voxels is not None:
+            _voxel_rows(q, sel, d1, *self._voxel_args, self.bound, self.exact_within, self.idx,
+                        self.slack2, self.by_slack, self.low)
+            return
         own = ~(d1 < self.exact_within)  # rows from the map's own rule
         self.by_slack[sel] = own
-        if not own.any():
-            return
-        if self.voxels is not None:
-            v = self.voxels
-            _voxel_rows(q[own], sel[own], d1[own], v.keys, v.start, v.count, v.order, v.stored,
-                        v.voxel_size, self.bound, self.idx, self.slack2)
-        else:
+        if own.any():
             _search_slack(self.map_index, q[own], sel[own], self.bound, self.slack2, self.idx)
 
 
@@ -329,80 +360,126 @@ def _search_lists(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, K: int,
     M = len(map_index)
     rows, d2 = map_index.tree.batch_knn_search(np.ascontiguousarray(q), K,
                                                num_threads=map_index.workers)
-    rows = np.asarray(rows).astype(np.int64)  # "none" comes back as 2**64 - 1 -> -1
-    d2 = np.asarray(d2, dtype=np.float64)
-    bad = (rows < 0) | (rows >= M) | ~np.isfinite(d2)
-    rows[bad] = M
-    cand[sel] = rows
-    idx[sel] = rows[:, 0]
-    # the K-th distance bounds every unlisted point; a map of K points or fewer lists them all
-    last = np.sqrt(d2[:, -1]) if M > K else np.full(len(sel), np.inf)
-    r_k[sel] = np.where(bad[:, -1], -np.inf, last)  # an incomplete answer: ask again
-    return np.where(bad[:, 0], np.inf, np.sqrt(d2[:, 0]))
+    d1 = np.empty(len(sel))
+    # "none" comes back as 2**64 - 1, -1 as int64
+    _take_lists(np.ascontiguousarray(rows).view(np.int64), np.asarray(d2, dtype=np.float64), sel,
+                M, M > K, cand, r_k, idx, d1)
+    return d1
+
+
+@numba.njit(cache=True)
+def _take_lists(rows: np.ndarray, d2: np.ndarray, sel: np.ndarray, M: int, partial: bool,
+                cand: np.ndarray, r_k: np.ndarray, idx: np.ndarray, d1: np.ndarray) -> None:
+    """Store a tree's K-nearest answer, rows (S, K) int64 and squared distances d2 (S, K), as the
+    lists of the points ``sel`` (S,): ``cand`` rows (M where none), ``idx`` the nearest, ``r_k``
+    the K-th distance, which bounds every unlisted map point (inf when the map has K points or
+    fewer, ``partial`` False: all listed; -inf for an incomplete answer: ask again), and ``d1``
+    (S,) the nearest distance (inf: none)."""
+    K = rows.shape[1]
+    for s in range(sel.shape[0]):
+        i = sel[s]
+        bad = False
+        for j in range(K):
+            r = rows[s, j]
+            bad = r < 0 or r >= M or not np.isfinite(d2[s, j])
+            cand[i, j] = M if bad else r
+        idx[i] = cand[i, 0]
+        if bad:
+            r_k[i] = -np.inf
+        else:
+            r_k[i] = math.sqrt(d2[s, K - 1]) if partial else np.inf
+        d1[s] = np.inf if cand[i, 0] == M else math.sqrt(d2[s, 0])
+
+
+@numba.njit(cache=True, inline="always")
+def _voxel_nearest(qx: float, qy: float, qz: float, keys: np.ndarray, start: np.ndarray,
+                   count: np.ndarray, stored: np.ndarray, voxel: float
+                   ) -> tuple[float, float, int, float]:
+    """KISS's neighbour of the map-frame position (qx, qy, qz) (``VoxelHashMap::GetClosestNeighbor``:
+    the nearest of the points stored in the 27 voxels around it; on ties the first in
+    :class:`~icpbench.targets.kiss.VoxelNeighbours`' order): the squared distances of the nearest
+    and second-nearest of those points (inf: none), the nearest's position in ``stored`` (-1:
+    none) and the distance (metres) from the position to its voxel's faces.
+
+    The voxel map is :class:`~icpbench.targets.kiss.VoxelNeighbours`': ``keys`` (V,) sorted voxel
+    codes, ``start``/``count`` (V,) runs of its ``stored`` (K, 3) points. The three voxels of a
+    column share x and y and have consecutive codes, so one binary search finds them."""
+    V = keys.shape[0]
+    off = 1 << 20  # the voxel code of VoxelNeighbours._codes: (x + off) << 42 | (y + off) << 21 | ...
+    best, second, at = np.inf, np.inf, -1
+    fx, fy, fz = qx / voxel, qy / voxel, qz / voxel
+    vx, vy, vz = math.floor(fx), math.floor(fy), math.floor(fz)
+    if max(abs(qx), abs(qy), abs(qz)) < (off - 2) * voxel:  # else no stored point is near
+        for a in range(-1, 2):
+            for b in range(-1, 2):
+                low = ((int(vx) + a + off) << 42) | ((int(vy) + b + off) << 21) \
+                    | (int(vz) - 1 + off)
+                lo, hi = 0, V
+                while lo < hi:  # the first code >= the column's lowest voxel
+                    mid = (lo + hi) // 2
+                    if keys[mid] < low:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                while lo < V and keys[lo] <= low + 2:
+                    for r in range(start[lo], start[lo] + count[lo]):
+                        ex, ey, ez = stored[r, 0] - qx, stored[r, 1] - qy, stored[r, 2] - qz
+                        e2 = ex * ex + ey * ey + ez * ez
+                        if e2 < best:
+                            second, best, at = best, e2, r
+                        elif e2 < second:
+                            second = e2
+                    lo += 1
+    wall = voxel * min(fx - vx, 1.0 - (fx - vx), fy - vy, 1.0 - (fy - vy),
+                       fz - vz, 1.0 - (fz - vz))
+    return best, second, at, wall
+
+
+@numba.njit(cache=True, inline="always")
+def _voxel_slack2(best: float, second: float, wall: float) -> float:
+    """The squared distance a point may move and keep KISS's neighbour (:func:`_voxel_nearest`'s
+    answer): while it keeps its voxel (so the same 27 voxels) and the nearest of their points,
+    ``min(distance to the voxel's faces, half the gap to the second)``."""
+    gap = 0.5 * (math.sqrt(second) - math.sqrt(best)) if best < np.inf else np.inf
+    slack = max(min(wall, gap), 1e-12) - _MARGIN_M
+    return slack * slack if slack > 0.0 else 0.0
 
 
 @numba.njit(cache=True)
 def _voxel_rows(q: np.ndarray, sel: np.ndarray, d1: np.ndarray, keys: np.ndarray,
                 start: np.ndarray, count: np.ndarray, order: np.ndarray, stored: np.ndarray,
-                voxel: float, bound: float, idx: np.ndarray, slack2: np.ndarray) -> None:
-    """KISS's neighbour (``VoxelHashMap::GetClosestNeighbor``: the nearest of the points stored in
-    the 27 voxels around the query; on ties the first in
-    :class:`~icpbench.targets.kiss.VoxelNeighbours`' order) for the points ``sel`` (S,) at map-frame
-    positions q (S, 3) whose exact nearest map point lies ``d1`` (S,) >= one voxel away, with a
-    slack no looser than :meth:`~icpbench.targets.kiss_replica.KissReplicaMap.nearest2`'s:
+                voxel: float, bound: float, exact_within: float, idx: np.ndarray,
+                slack2: np.ndarray, by_slack: np.ndarray, low: np.ndarray) -> None:
+    """After a search of the points ``sel`` (S,) at map-frame positions q (S, 3), whose exact
+    nearest map point lies ``d1`` (S,) away: those a voxel (``exact_within``) or more away take
+    KISS's neighbour (:func:`_voxel_nearest`; ``by_slack`` True, the others False), with a slack
+    no looser than :meth:`~icpbench.targets.kiss_replica.KissReplicaMap.nearest2`'s:
 
     * exact neighbour beyond the gate ``bound``: every row is gated while the point moves less
       than ``d1 - bound (1 + margin)`` (``idx`` keeps the exact neighbour);
-    * else the row holds while the point keeps its voxel (so the same 27 voxels) and its nearest
-      of their points: ``min(distance to the voxel's faces, half the gap to the second)``.
+    * else the row holds while the point keeps its voxel and its nearest (:func:`_voxel_slack2`).
 
-    The voxel map is :class:`~icpbench.targets.kiss.VoxelNeighbours`': ``keys`` (V,) sorted voxel
-    codes, ``start``/``count`` (V,) runs of ``order`` (K,) (map rows) and ``stored`` (K, 3) (their
-    points, in that order). The three voxels of a column share x and y and have consecutive codes,
-    so one binary search finds them. Replaces that class's NumPy search, a third of KISS-ICP's
-    query time (one ``town`` scan's ensemble, 2026-11-30: 14.6 of 28.8 s of registrations).
+    ``low`` (N,) takes ``d1`` (:func:`_assign`'s bound). ``order`` (K,) names the map row of each
+    ``stored`` point. Replaces :class:`~icpbench.targets.kiss.VoxelNeighbours`' NumPy search, a
+    third of KISS-ICP's query time (one ``town`` scan's ensemble, 2026-11-30: 14.6 of 28.8 s of
+    registrations).
     """
     K = stored.shape[0]
-    V = keys.shape[0]
-    off = 1 << 20  # the voxel code of VoxelNeighbours._codes: (x + off) << 42 | (y + off) << 21 | ...
     far = bound * (1.0 + _FAR_MARGIN)
     for s in range(sel.shape[0]):
         i = sel[s]
+        low[i] = d1[s]
+        by_slack[i] = not d1[s] < exact_within
+        if not by_slack[i]:  # the lists name the exact neighbour
+            continue
         if d1[s] > bound:  # the far rule: no row counts, whichever
             slack = d1[s] - far
             slack2[i] = slack * slack if slack > 0.0 else 0.0
             continue
-        qx, qy, qz = q[s, 0], q[s, 1], q[s, 2]
-        best, second, at = np.inf, np.inf, -1
-        fx, fy, fz = qx / voxel, qy / voxel, qz / voxel
-        vx, vy, vz = math.floor(fx), math.floor(fy), math.floor(fz)
-        if max(abs(qx), abs(qy), abs(qz)) < (off - 2) * voxel:  # else no stored point is near
-            for a in range(-1, 2):
-                for b in range(-1, 2):
-                    low = ((int(vx) + a + off) << 42) | ((int(vy) + b + off) << 21) \
-                        | (int(vz) - 1 + off)
-                    lo, hi = 0, V
-                    while lo < hi:  # the first code >= the column's lowest voxel
-                        mid = (lo + hi) // 2
-                        if keys[mid] < low:
-                            lo = mid + 1
-                        else:
-                            hi = mid
-                    while lo < V and keys[lo] <= low + 2:
-                        for r in range(start[lo], start[lo] + count[lo]):
-                            ex, ey, ez = stored[r, 0] - qx, stored[r, 1] - qy, stored[r, 2] - qz
-                            e2 = ex * ex + ey * ey + ez * ez
-                            if e2 < best:
-                                second, best, at = best, e2, r
-                            elif e2 < second:
-                                second = e2
-                        lo += 1
+        best, second, at, wall = _voxel_nearest(q[s, 0], q[s, 1], q[s, 2], keys, start, count,
+                                                stored, voxel)
         idx[i] = order[at] if at >= 0 else K
-        wall = voxel * min(fx - vx, 1.0 - (fx - vx), fy - vy, 1.0 - (fy - vy),
-                           fz - vz, 1.0 - (fz - vz))
-        gap = 0.5 * (math.sqrt(second) - math.sqrt(best)) if best < np.inf else np.inf
-        slack = max(min(wall, gap), 1e-12) - _MARGIN_M
-        slack2[i] = slack * slack if slack > 0.0 else 0.0
+        slack2[i] = _voxel_slack2(best, second, wall)
 
 
 def _search_slack(map_index: MapIndex, q: np.ndarray, sel: np.ndarray, bound: float,

@@ -17,6 +17,7 @@ from icpbench.targets.p2point import PointToPointICP
 from icpbench.targets.point_forward import (
     CANDIDATES,
     CompiledPointICP,
+    NearestRows,
     _assign,
     _search_lists,
     _voxel_rows,
@@ -36,6 +37,11 @@ def _attacked(batch: Batch, seed: int, share: float = 0.4, lift_m: float = 0.8) 
         x[b, rng.random(x.shape[1]) < 0.02] += 20.0  # beyond d_max: no correspondence
         x[b, rng.random(x.shape[1]) < 0.01] = np.nan
     return torch.as_tensor(x)
+
+
+#: _assign's voxel arguments for a map without KISS's voxel rule.
+NO_VOXELS = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+             np.zeros(0, np.int64), np.zeros((0, 3)), 0.0)
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +111,7 @@ def test_candidate_lists_name_the_exact_nearest_neighbour_or_ask_again():
         t = rng.normal(size=3)
         t *= step / np.linalg.norm(t)
         _assign(P, finite, np.eye(3), t, ref, cand, r_k, np.zeros(N, dtype=bool), np.zeros(N),
-                table, bound, np.inf, idx, need)
+                table, bound, np.inf, idx, need, np.full(N, np.nan), *NO_VOXELS)
         q = P + t
         d = np.linalg.norm(q[:, None] - table[None], axis=2)
         ok = ~need
@@ -132,8 +138,10 @@ def test_compiled_voxel_rule_is_kiss_s_search_and_holds_within_its_slack():
     q, d1 = q[d1 >= 0.7], d1[d1 >= 0.7]  # the rule answers points a voxel or more away
     n = len(q)
     idx, slack2 = np.full(n, -1, dtype=np.int64), np.full(n, np.nan)
+    by_slack, low = np.zeros(n, dtype=bool), np.full(n, np.nan)
     _voxel_rows(q, np.arange(n), d1, vox.keys, vox.start, vox.count, vox.order, vox.stored,
-                vox.voxel_size, bound, idx, slack2)
+                vox.voxel_size, bound, 0.7, idx, slack2, by_slack, low)
+    assert by_slack.all() and np.array_equal(low, d1)
     gated = d1 > bound
     assert 0 < gated.sum() < n
     np.testing.assert_array_equal(idx[~gated], vox.query(q[~gated])[1])
@@ -148,9 +156,36 @@ def test_compiled_voxel_rule_is_kiss_s_search_and_holds_within_its_slack():
     one = VoxelNeighbours(np.array([[0.9, 0.5, -0.8], [2.05, 0.5, 0.5]]), 1.0)
     idx, slack2 = np.full(1, -1, dtype=np.int64), np.full(1, np.nan)
     _voxel_rows(np.array([[0.9, 0.5, 0.5]]), np.arange(1), np.array([1.15]), one.keys, one.start,
-                one.count, one.order, one.stored, 1.0, bound, idx, slack2)
+                one.count, one.order, one.stored, 1.0, bound, 1.0, idx, slack2, np.zeros(1, bool),
+                np.zeros(1))
     assert idx[0] == 0 and np.sqrt(slack2[0]) < 0.1 + 1e-12  # the voxel's face at x = 1
     assert one.query(np.array([[1.05, 0.5, 0.5]]))[1][0] == 1
+
+
+def test_points_on_kiss_s_rule_are_answered_again_without_a_search():
+    """A point a voxel or more from KISS's map that moved past its slack takes the voxel rule
+    again in the assignment, without a tree search, while the way it moved still leaves it a
+    voxel away: at every step its row is the one a search gives (the same lists with their
+    distance bounds wiped: every such point searched), and fewer points are searched."""
+    s = scene_sample(1_500, 12_000, seed=2)
+    replica = KissICPReplica("lidar")
+    m = replica.kiss_map(MapIndex(s.map))
+    rng = np.random.default_rng(5)
+    N, bound = 4_000, 1.5  # a gate some points come within as they move
+    P = s.map[rng.choice(len(s.map), N)] + rng.normal(scale=1.5, size=(N, 3))
+    finite = np.ones(N, dtype=bool)
+    rows, searched = NearestRows(m, P, finite, bound), NearestRows(m, P, finite, bound)
+    t, step = np.zeros(3), np.array([0.06, -0.04, 0.02])
+    for _ in range(15):
+        t = t + step
+        got = rows.update(np.eye(3), t).copy()
+        searched.low[:] = np.nan
+        want = searched.update(np.eye(3), t)
+        q, table = P + t, np.vstack([m.points, np.full((1, 3), np.inf)])  # row M: none
+        near = np.linalg.norm(q - table[want], axis=1) <= bound
+        np.testing.assert_array_equal(got[near], want[near])
+        assert np.all(np.linalg.norm(q - table[got], axis=1)[~near] > bound)  # gated either way
+    assert rows.searched < 0.7 * searched.searched
 
 
 def test_queries_answered_by_the_compiled_pass_see_the_targets_errors(batch, answers_as_target):
