@@ -24,6 +24,10 @@ its rule is the exact neighbour (``MapIndex.exact_within``, one voxel); the list
 nearer than that. The other points take that rule itself, compiled here (:func:`_voxel_rows`,
 for a map that names its voxel search, ``MapIndex.voxel_search``), or else the map's
 ``nearest2``, with the two-distance slack of :class:`icpbench.targets.icp._Correspondences`.
+Such a point that moves past its slack is not searched again while a lower bound of its exact
+distance (the last search's, less the way it moved since) keeps it a voxel away: the assignment
+runs the voxel rule for it in place (:func:`_assign`). On the query registrations of an attacked
+``town`` scan that left 0.6x the tree searches and took 0.75x the time (2026-11-30).
 
 Only forward passes: no gradient, no ``nn_reuse_m``, the hard gate, float64 scans. The class
 :class:`CompiledPointICP` wraps a differentiable point-to-point target as its exact replica
