@@ -61,6 +61,16 @@ _FAR_MARGIN = 1e-4
 #: Absolute margin (metres) on every certificate (as ``icp``'s cache).
 _MARGIN_M = 1e-9
 _KERNELS = {"none": 0, "cauchy": 1, "geman_mcclure": 2, "huber": 3}
+#: The voxel arguments of :func:`_assign` and :func:`_voxel_rows` (``keys``, ``start``, ``count``,
+#: ``order``, ``stored``, ``voxel``) for a map without KISS's voxel rule (``voxel`` 0: off).
+NO_VOXELS = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+             np.zeros(0, np.int64), np.zeros((0, 3)), 0.0)
+
+
+def voxel_arguments(v: Any) -> tuple[Any, ...]:
+    """The voxel arguments of :func:`_assign` and :func:`_voxel_rows` for KISS's voxel map ``v``
+    (:class:`~icpbench.targets.kiss.VoxelNeighbours`)."""
+    return (v.keys, v.start, v.count, v.order, v.stored, float(v.voxel_size))
 
 
 @numba.njit(cache=True)
@@ -307,15 +317,12 @@ class NearestRows:
         self.r_k = np.full(N, -np.inf)  # every unlisted map point is at least this far from ref
         self.by_slack = np.full(N, not self.exact_within > 0.0)  # rows by the map's own rule
         self.slack2 = np.zeros(N)  # squared distance a point may move with the same row
-        # KISS's 27-voxel rule, compiled (_voxel_rows), where the map has one and lists decide
-        # the exact neighbour within a voxel; otherwise the map's own nearest2
-        self.voxels = map_index.voxel_search if self.exact_within > 0.0 else None
+        # KISS's 27-voxel rule, compiled (_voxel_rows, _assign), where the map has one and lists
+        # decide the exact neighbour within a voxel; otherwise the map's own nearest2
+        v = map_index.voxel_search if self.exact_within > 0.0 else None
+        self.has_voxels = v is not None
+        self._voxel_args = (voxel_arguments(v) if v is not None else NO_VOXELS)
         self.low = np.full(N, np.nan)  # a lower bound of the exact nearest distance at ref
-        v = self.voxels  # _assign's voxel rule: the map's arrays, or none (voxel 0)
-        self._voxel_args = ((v.keys, v.start, v.count, v.order, v.stored, float(v.voxel_size))
-                            if v is not None else
-                            (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                             np.zeros(0, np.int64), np.zeros((0, 3)), 0.0))
         self.searched = 0  # points searched again (for profiling)
         self._eye, self._zero = np.eye(3), np.zeros(3)  # (unused with positions)
 
@@ -347,7 +354,7 @@ class NearestRows:
             _search_slack(self.map_index, q, sel, self.bound, self.slack2, self.idx)
             return
         d1 = _search_lists(self.map_index, q, sel, self.K, self.cand, self.r_k, self.idx)
-        if self.voxels is not None:
+        if self.has_voxels:
             _voxel_rows(q, sel, d1, *self._voxel_args, self.bound, self.exact_within, self.idx,
                         self.slack2, self.by_slack, self.low)
             return

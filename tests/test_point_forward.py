@@ -16,6 +16,7 @@ from icpbench.targets.kiss_replica import KissICPReplica
 from icpbench.targets.p2point import PointToPointICP
 from icpbench.targets.point_forward import (
     CANDIDATES,
+    NO_VOXELS,
     CompiledPointICP,
     NearestRows,
     _assign,
@@ -37,11 +38,6 @@ def _attacked(batch: Batch, seed: int, share: float = 0.4, lift_m: float = 0.8) 
         x[b, rng.random(x.shape[1]) < 0.02] += 20.0  # beyond d_max: no correspondence
         x[b, rng.random(x.shape[1]) < 0.01] = np.nan
     return torch.as_tensor(x)
-
-
-#: _assign's voxel arguments for a map without KISS's voxel rule.
-NO_VOXELS = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-             np.zeros(0, np.int64), np.zeros((0, 3)), 0.0)
 
 
 @pytest.fixture(scope="module")
