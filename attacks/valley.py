@@ -100,7 +100,8 @@ def line_climbs(points_map: np.ndarray, cand: np.ndarray, offset: np.ndarray, ma
     distance is at least the earlier one's less the way between them, by the triangle
     inequality; the model cost is flat from the gate on): the same climbs, to the bit, with the
     farthest lookups, the dearest, left out (4-step plans of a ``town`` scan, 2026-11-30: 0.57 s
-    against 0.68 s).
+    against 0.68 s). A lookup stops searching as far out as a later step could still come within
+    the gate.
 
     Args:
         points_map: (N, 3) finite scan points at the true pose, map frame.
@@ -126,13 +127,19 @@ def line_climbs(points_map: np.ndarray, cand: np.ndarray, offset: np.ndarray, ma
     r = np.empty((steps + 1, start.shape[0]))
     low = np.full(start.shape[0], -np.inf)  # a lower bound of each step's distance to the map
     beyond = cost.d_max * (1.0 + 1e-9) + 1e-9  # margins far above the rounding of a distance
+    way = [float(np.linalg.norm(shift[k] - shift[k - 1])) for k in range(1, steps + 1)]
     for k in range(steps + 1):
         if k:
-            low = low - float(np.linalg.norm(shift[k] - shift[k - 1]))
+            low = low - way[k - 1]
         ask = ~(low > beyond)
         r[k] = cost.d_max  # rho is flat from the gate on
-        r[k, ask] = map_index.query(start[ask] + shift[k])[0]
-        low[ask] = r[k, ask]
+        # the search stops where no later step of the line can come within the gate: a point
+        # farther comes back as inf (rho(inf) is rho(d_max), as for its distance) and is not
+        # looked up again
+        bound = beyond + sum(way[k:]) * (1.0 + 1e-9) + 1e-9
+        near = map_index.query(start[ask] + shift[k], bound)[0]
+        r[k, ask] = near
+        low[ask] = np.where(np.isfinite(near), near, bound)
     e = rho(r, cost).reshape(steps + 1, C, n).transpose(1, 0, 2)
     return np.ascontiguousarray(np.diff(e, axis=1))  # the layout einsum sums in (choose)
 
