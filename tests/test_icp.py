@@ -116,7 +116,8 @@ def test_implicit_gradient_is_the_derivative_of_the_converged_pose(cls):
     x_u = batch.scans.clone().requires_grad_(True)
     l_u, _ = loss(unrolled, x_u)
     l_u.backward()
-    assert float(l_i.detach()) == float(l_u.detach())  # the pose value is untouched
+    # the pose value is untouched (point-to-point's iterations run compiled: equal to rounding)
+    assert abs(float(l_i.detach()) - float(l_u.detach())) <= 1e-13 * abs(float(l_u.detach()))
     assert float((x_i.grad - x_u.grad).norm() / x_u.grad.norm()) < 1e-5
     _assert_central_differences(lambda scans: loss(implicit, scans)[0], batch.scans, x_i.grad,
                                 draws=10, rtol=1e-4, min_checked=6)

@@ -187,3 +187,45 @@ def test_points_on_kiss_s_rule_are_answered_again_without_a_search():
 def test_queries_answered_by_the_compiled_pass_see_the_targets_errors(batch, answers_as_target):
     answers_as_target(PointToPointICP("lidar"), batch, 0.5, members="uniform,spoof,valley",
                       spoof_queries=4, valley_queries=3)
+
+
+@pytest.mark.parametrize("make", [lambda: PointToPointICP("lidar"),
+                                  lambda: KissICPReplica("lidar")], ids=["p2point", "kiss-replica"])
+def test_the_implicit_gradient_takes_the_compiled_iterations_and_rows_stay_icps_own(
+        scene_pair, make, monkeypatch):
+    """A gradient attack's surrogate registration (implicit gradient) runs its iterations
+    compiled: the same poses to rounding, the same iteration counts and the same gradient as
+    PyTorch's iterations give; a registration without a gradient (a row) never does."""
+    import icpbench.targets.icp as icp_module
+    import icpbench.targets.point_forward as pf
+    from icpbench.targets import forward_cache
+
+    target = make().with_settings(backprop="implicit")
+    batch = scene_pair
+    x0 = _attacked(batch, 5).to(torch.float64)
+    calls = []
+    real = pf.register_point
+    monkeypatch.setattr(pf, "register_point", lambda *a: calls.append(1) or real(*a))
+
+    def gradient():
+        forward_cache.clear()
+        x = x0.clone().requires_grad_(True)
+        reg = target.register(x, batch.maps, batch.T_init)
+        (g,) = torch.autograd.grad((reg.T[:, :3, 3] ** 2).sum() + reg.T[:, 0, 1].sum(), x)
+        return reg, torch.nan_to_num(g)
+
+    reg_c, g_c = gradient()
+    assert len(calls) == len(batch)  # one compiled registration per scan
+    with torch.no_grad():  # a row: PyTorch's iterations, though the same scans were just registered
+        row = target.register(x0, batch.maps, batch.T_init)
+    assert len(calls) == len(batch)
+    monkeypatch.setattr(icp_module, "_compiled_forward", lambda *a: False)
+    reg_t, g_t = gradient()
+    assert len(calls) == len(batch)
+    np.testing.assert_allclose(reg_c.T.detach().numpy(), reg_t.T.detach().numpy(), rtol=0,
+                               atol=1e-12)
+    np.testing.assert_allclose(row.T.numpy(), reg_t.T.detach().numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(reg_c.iterations.numpy(), reg_t.iterations.numpy())
+    assert reg_c.status == reg_t.status
+    assert float(g_t.abs().max()) > 0
+    np.testing.assert_allclose(g_c.numpy(), g_t.numpy(), rtol=0, atol=1e-9 * float(g_t.abs().max()))
