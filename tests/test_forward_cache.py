@@ -84,3 +84,43 @@ def test_unrolled_graphs_and_approximate_search_are_not_cached(batch):
     assert float(g.abs().max()) > 0 and forward_cache.size() == 0
     PointToPlaneICP("lidar", max_iterations=10, nn_reuse_m=0.05).register(scans, b.maps, b.T_init)
     assert forward_cache.size() == 0
+
+
+def test_a_black_box_registration_asked_for_again_comes_from_the_cache(batch):
+    # the ensemble's best scan is registered by its query and again for its row: the library
+    # runs once; another scan, initial pose or setting runs it again; a random library never
+    from icpbench.targets.small_gicp import SmallGICPTarget
+
+    b, scans = batch
+    calls = []
+
+    class Counted(SmallGICPTarget):
+        def _register_one(self, scan, target, T0):
+            calls.append(1)
+            return super()._register_one(scan, target, T0)
+
+    gicp = Counted("lidar")
+    maps = [gicp.prepare(s.map, s.map_normals) for s in b.samples]
+    with forward_cache.disabled():
+        ref = gicp.register(scans, maps, b.T_init)
+    assert len(calls) == 3 and forward_cache.size() == 0
+    first = gicp.register(scans, maps, b.T_init)
+    assert len(calls) == 6 and forward_cache.size() == 3
+    again = gicp.register(scans, maps, b.T_init)
+    assert len(calls) == 6
+    _same(ref, first)
+    _same(ref, again)
+    gicp.register(scans.to(torch.float32).to(scans.dtype), maps, b.T_init)  # rounded: other scans
+    assert len(calls) == 9
+    other = b.T_init.clone()
+    other[:, 0, 3] += 0.01
+    gicp.register(scans, maps, other)  # other initial poses
+    Counted("lidar", max_iterations=10).register(scans, maps, b.T_init)  # other settings
+    assert len(calls) == 15 and forward_cache.size() == 12
+
+    class Random(Counted):
+        deterministic = False
+
+    Random("lidar").register(scans, maps, b.T_init)
+    Random("lidar").register(scans, maps, b.T_init)
+    assert len(calls) == 21 and forward_cache.size() == 12
