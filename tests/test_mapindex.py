@@ -73,3 +73,18 @@ def test_a_pickled_index_rebuilds_its_trees_and_answers_the_same():
     assert copy._tree is None and copy._single is None
     after = copy.query(q)
     assert np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])
+
+
+def test_a_map_with_a_duplicated_point_answers_every_query_from_small_gicps_tree():
+    # two copies of a point: the trees may name different copies (with other normals), so the
+    # whole map stays on small_gicp's tree, whose choice every earlier result was made with
+    m, q = _map_and_queries(4)
+    m = np.vstack([m, m[:1]])
+    index = MapIndex(m)
+    finite = q[np.isfinite(q).all(axis=1)]
+    assert index.near_map(finite).all()
+    rows, d2 = index.tree.batch_knn_search(np.ascontiguousarray(finite), 1, num_threads=1)
+    d, i = index.query(finite)
+    assert np.array_equal(i, np.asarray(rows).astype(np.int64)[:, 0])
+    assert np.array_equal(d, np.sqrt(np.asarray(d2)[:, 0]))
+    assert not MapIndex(m[:-1]).near_map(finite).all()
