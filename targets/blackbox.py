@@ -16,6 +16,7 @@ radians) for left increments ``T <- exp(delta^) T``.
 
 from __future__ import annotations
 
+import functools
 import json
 from abc import abstractmethod
 from collections.abc import Mapping, Sequence
@@ -74,14 +75,11 @@ class BlackBoxTarget(Target):
     #: it False.
     deterministic: ClassVar[bool] = True
 
+    @functools.cached_property
     def _cache_settings(self) -> tuple[str, str]:
         """What identifies this target's registrations in the cache: its class and settings."""
-        found = self.__dict__.get("_cache_id")
-        if found is None:
-            found = (f"{type(self).__module__}.{type(self).__qualname__}",
-                     json.dumps(self.settings(), sort_keys=True, default=str))
-            self.__dict__["_cache_id"] = found
-        return found
+        return (f"{type(self).__module__}.{type(self).__qualname__}",
+                json.dumps(self.settings(), sort_keys=True, default=str))
 
     def register(self, scans: torch.Tensor, maps: Sequence[Any],
                  T_init: torch.Tensor) -> Registration:
@@ -99,7 +97,7 @@ class BlackBoxTarget(Target):
             if pts.shape[0] < self.min_correspondences:
                 outs.append(OneResult(T0[b].copy(), False, 0, 0, None))
                 continue
-            key = (forward_cache.sample_key(self._cache_settings(), S[b], T0[b], maps[b])
+            key = (forward_cache.sample_key(self._cache_settings, S[b], T0[b], maps[b])
                    if self.deterministic else None)
             found = None if key is None else forward_cache.get(key)
             if found is None:

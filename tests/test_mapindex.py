@@ -70,7 +70,7 @@ def test_a_pickled_index_rebuilds_its_trees_and_answers_the_same():
     index = MapIndex(m)
     before = index.query(q)
     copy = pickle.loads(pickle.dumps(index))
-    assert copy._tree is None and copy._single is None
+    assert copy._tree is None and copy._far is None
     after = copy.query(q)
     assert np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])
 

@@ -65,7 +65,7 @@ class MapIndex:
             self.normals = nrm
         self.workers = max(1, int(workers))
         self._tree: Any = None
-        self._single: cKDTree | None = None
+        self._far: cKDTree | None = None
         self._box: tuple[np.ndarray, np.ndarray] | None = None
         self._torch: dict[torch.dtype, tuple[torch.Tensor, torch.Tensor | None]] = {}
         self._table: dict[torch.dtype, torch.Tensor] = {}
@@ -76,7 +76,7 @@ class MapIndex:
     def __getstate__(self) -> dict[str, Any]:
         # the native tree does not pickle: it is rebuilt on first use after unpickling (and the
         # SciPy tree, cheaper to rebuild than to send)
-        return {**self.__dict__, "_tree": None, "_single": None, "_box": None}
+        return {**self.__dict__, "_tree": None, "_far": None, "_box": None}
 
     @property
     def tree(self) -> Any:
@@ -91,10 +91,10 @@ class MapIndex:
     def far_tree(self) -> cKDTree:
         """SciPy's ``cKDTree`` over the points, for queries far from the map (module docstring;
         built on first use: unbalanced, 32 points per leaf, loose node boxes)."""
-        if self._single is None:
-            self._single = cKDTree(self.points, leafsize=32, balanced_tree=False,
+        if self._far is None:
+            self._far = cKDTree(self.points, leafsize=32, balanced_tree=False,
                                    compact_nodes=False)
-        return self._single
+        return self._far
 
     def near_map(self, q: np.ndarray) -> np.ndarray:
         """(K,) bool: finite query ``q`` (K, 3) lies in the map's bounding box grown by
