@@ -93,7 +93,7 @@ class MapIndex:
         built on first use: unbalanced, 32 points per leaf, loose node boxes)."""
         if self._far is None:
             self._far = cKDTree(self.points, leafsize=32, balanced_tree=False,
-                                   compact_nodes=False)
+                                compact_nodes=False)
         return self._far
 
     def near_map(self, q: np.ndarray) -> np.ndarray:
